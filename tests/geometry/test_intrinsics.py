@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import re
 import warnings
 
 import numpy as np
@@ -89,3 +90,71 @@ def test_default_checks_the_size_as_the_constructor_does() -> None:
     cam = Intrinsics.default(320.0, np.int64(240), 400)
     assert (cam.width, cam.height, cam.fx, cam.cx, cam.cy) == (320, 240, 400.0, 159.5, 119.5)
     assert type(cam.width) is int and Intrinsics.default(640, 480) == Intrinsics(640, 480, 640.0, 640.0, 319.5, 239.5)
+
+
+def test_from_matrix_reads_opencvs_calibration_matrix_and_refuses_what_no_camera_is() -> None:
+    """``Intrinsics`` takes ``fx, fy, cx, cy``; OpenCV's matrix reads ``fx, cx`` / ``fy, cy`` row by row, and passing
+    its entries in that order was caught only by chance (a size check). ``from_matrix`` reads the matrix (a list, an
+    array, a tensor; a tensor's graph kept) and refuses what is no calibration matrix, saying what it likely is."""
+    K = [[600.0, 0.0, 321.0], [0.0, 590.0, 239.0], [0.0, 0.0, 1.0]]
+    expected = Intrinsics(640, 480, 600.0, 590.0, 321.0, 239.0)
+    assert Intrinsics.from_matrix(K, 640, 480) == expected
+    assert Intrinsics.from_matrix(np.array(K), 640, 480) == expected
+    assert Intrinsics.from_matrix(torch.tensor(K, dtype=torch.float32), 640, 480) == expected
+    Kt = torch.tensor(K, requires_grad=True)
+    cam = Intrinsics.from_matrix(Kt, 640, 480)
+    cam.matrix(torch.float32).sum().backward()
+    torch.testing.assert_close(Kt.grad, torch.tensor([[1.0, 0, 1], [0, 1, 1], [0, 0, 0]]), rtol=0, atol=0)
+    cases = [
+        (np.array(K).T, r"^matrix's last row must be \(0, 0, 1\), got \(321, 239, 1\): the transpose of a "
+                        r"calibration matrix \(cx, cy = 321, 239 in its last row\)\? Pass K.T$"),
+        (np.array(K) * 2, r"^matrix's last row .*got \(0, 0, 2\): a matrix scaled by 2\? Pass K / K\[2, 2\]$"),
+        (np.hstack([K, [[0.0], [0.0], [0.0]]]), r"^matrix must be 3x3, got shape \(3, 4\) \(a 3x4 projection matrix"),
+        ([[600.0, 2.0, 321.0], [0.0, 590.0, 239.0], [0.0, 0.0, 1.0]], r"^matrix must have no skew .*got K\[0, 1\] = 2"),
+        ([[600.0, 0.0, float("nan")], [0.0, 590.0, 239.0], [0.0, 0.0, 1.0]], "^matrix must be finite"),
+    ]
+    for bad, message in cases:
+        with pytest.raises(ValueError, match=message):
+            Intrinsics.from_matrix(bad, 640, 480)
+    with pytest.raises(TypeError, match="matrix must be a 3x3 calibration matrix"):
+        Intrinsics.from_matrix("K", 640, 480)
+    with pytest.raises(TypeError, match=r"width must be a whole number of pixels, got 600.5 \(Intrinsics takes width, "
+                                        r"height, fx, fy, cx, cy in this order; from a 3x3 calibration matrix"):
+        Intrinsics(600.5, 590.5, 321.0, 239.0, 640, 480)  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize(
+    "given, said",
+    [
+        ((600.0, 319.5, 600.0, 239.5), r"OpenCV's matrix order \(fx, cx, fy, cy\).*Likely meant: Intrinsics\(640, 480, "
+                                       r"fx=600, fy=600, cx=319.5, cy=239.5\)"),
+        ((319.5, 239.5, 600.0, 600.0), r"focal lengths and the principal point swapped.*Likely meant: Intrinsics\(640, "
+                                       r"480, fx=600, fy=600, cx=319.5, cy=239.5\)"),
+        ((0.9, 1.2, 0.5, 0.5), r"normalised intrinsics.*Likely meant: Intrinsics\(640, 480, fx=576, fy=576, "
+                               r"cx=319.5, cy=239.5\)"),
+        ((600.0, 600.0, 0.0, 0.0), r"principal point at the top-left pixel: a transposed K read .* a centred camera's "
+                                   r"principal point \(319.5, 239.5\)"),
+        ((1000.0, 400.0, 319.5, 239.5), r"are implausible \(focal lengths more than 1.25 apart"),
+        ((300.0, 300.0, 900.0, 240.0), r"are implausible .*a principal point outside the frame"),
+        ((600.0, 600.0, 319.5, 239.5), None),
+        ((900.0, 880.0, 100.0, 400.0), None),  # off-centre, inside the frame: plausible (crops of a sensor exist)
+        ((300.0, 300.0, -0.5, 479.5), None),  # at the frame's corner pixel's edge
+        ((1000.0, 850.0, 319.5, 239.5), None),  # pixels 1.18 from square: within PLAUSIBLE_ASPECT
+    ],
+    ids=["opencv-order", "swapped", "normalised", "corner", "aspect", "outside", "centred", "off-centre", "edge",
+         "non-square"],
+)
+def test_mixed_up_intrinsics_are_named_with_the_likely_fix(given, said) -> None:
+    """A camera whose numbers read as a mix-up of the constructor's arguments (OpenCV's matrix order, the principal
+    point and focal lengths swapped, normalised units, a transposed matrix's zeros) is named with the likely fix;
+    implausible ones are named; plausible ones, off-centre principal points included, are not (nothing here is
+    impossible: the tracker warns and tracks, test_user_inputs)."""
+    from torchface.geometry.camera import mixed_up_intrinsics
+
+    hint = mixed_up_intrinsics(Intrinsics(640, 480, *given))
+    if said is None:
+        assert hint is None
+    else:
+        assert hint is not None and re.search(said, hint), hint
+    K = torch.tensor(float(given[0]), requires_grad=True)  # (a calibration being optimised: no word)
+    assert mixed_up_intrinsics(Intrinsics(640, 480, K, *given[1:])) is None  # type: ignore[arg-type]

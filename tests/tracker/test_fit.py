@@ -339,14 +339,18 @@ def test_missing_and_zero_weight_landmarks_are_ignored(model):
 
 @pytest.mark.parametrize("value", [float("inf"), -float("inf")])
 def test_infinite_landmark_counts_as_missing(model, value):
-    """A landmark with an infinite coordinate is missing, as a NaN one is: the same fit. (Its target used to be
-    nan_to_num's largest float, whose square overflowed: a NaN start and an identity-pose, failed fit.)"""
+    """A landmark row of infinite coordinates is missing, as a NaN row is: the same fit. (Its target used to be
+    nan_to_num's largest float, whose square overflowed: a NaN start and an identity-pose, failed fit.) A row with
+    one coordinate infinite and the other finite is refused, as one with a coordinate NaN is (check_landmark_values)."""
     R, t = poses()
     noise = torch.randn(1, 68, 2, generator=torch.Generator().manual_seed(2), dtype=D)
     lm = project_landmarks(model, R[:1], t[:1]) + noise
     missing, infinite = lm.clone(), lm.clone()
     missing[0, 30] = float("nan")
     infinite[0, 30, 0] = value
+    with pytest.raises(ValueError, match=r"^landmarks_px: landmark\(s\) \[30\] have one coordinate NaN or infinite"):
+        fit_landmarks(model, infinite, CAM)
+    infinite[0, 30, 1] = value
     ref, fit = fit_landmarks(model, missing, CAM), fit_landmarks(model, infinite, CAM)
     assert int(fit.status[0]) == int(ref.status[0])
     for field in ("axis_angle", "translation", "shape_coeffs", "anim_coeffs", "rms_px"):
@@ -366,12 +370,17 @@ def test_weights_matter(model):
     assert float(err[1]) < float(err[0])
 
 
-def test_nan_weight_is_ignored(model):
+def test_nan_weight_is_refused_and_weight_zero_ignores_the_point(model):
+    """A NaN weight was read as 0 (the point ignored) without a word; it is refused naming the point
+    (check_landmark_values; negative and infinite ones too: test_user_inputs). Weight 0 ignores the point."""
     R, t = poses()
     lm = project_landmarks(model, R[:1], t[:1])
     lm[0, 36] = torch.tensor([1000.0, 1000.0], dtype=D)
     w = torch.ones(1, 68, dtype=D)
     w[0, 36] = float("nan")
+    with pytest.raises(ValueError, match=r"^weights must be numbers >= 0, got NaN for landmark\(s\) \[36\]"):
+        fit_landmarks(model, lm, CAM, w)
+    w[0, 36] = 0.0
     fit = fit_landmarks(model, lm, CAM, w)
     assert float(geodesic_angle_deg(fit.rotation, R[:1])) < 1e-4
 

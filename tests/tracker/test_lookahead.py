@@ -246,8 +246,9 @@ def test_keyframe_expressions_keep_their_change_out_of_the_start(model):
 
 
 def test_infinite_landmark_counts_as_missing_in_the_refinement(model):
-    """The refinement's landmark term treats a landmark with an infinite coordinate as missing, as a NaN one: the
-    same refined fit. (Its target used to be nan_to_num's largest float: 0 * inf**2 made the cost NaN.)"""
+    """The refinement's landmark term treats a landmark row of infinite coordinates as missing, as a NaN row: the
+    same refined fit. (Its target used to be nan_to_num's largest float: 0 * inf**2 made the cost NaN.) A row with
+    one coordinate infinite and the other finite is refused, as everywhere (check_landmark_values)."""
     frames, gt = render([[0.0, 0.0, 0.0], [20.0, 0.0, 0.0], [-20.0, 0.0, 0.0]])
     frames = frames.float() / 255.0 if frames.dtype == torch.uint8 else frames.float()
     R = gt.rotation.to(torch.float32)
@@ -257,9 +258,12 @@ def test_infinite_landmark_counts_as_missing_in_the_refinement(model):
     out = {}
     for value in ("nan", "inf", "-inf"):
         lm = gt.landmarks_px[0].float().clone()
-        lm[30, 1] = float(value)
+        lm[30] = float(value)
         out[value] = refine_first_fit(model, frames, gt.intrinsics, lm, start, R[1:], gt.translation[1:].float(),
                                       config=cfg)  # fmt: skip
+    lm[30, 0] = 5.0
+    with pytest.raises(ValueError, match=r"^landmarks_px: landmark\(s\) \[30\] have one coordinate NaN or infinite"):
+        refine_first_fit(model, frames, gt.intrinsics, lm, start, R[1:], gt.translation[1:].float(), config=cfg)
     ref = out["nan"]
     assert bool(torch.isfinite(ref.translation).all())
     assert float(geodesic_angle_deg(ref.rotation.double(), gt.rotation[:1])) < 1.0
@@ -268,11 +272,13 @@ def test_infinite_landmark_counts_as_missing_in_the_refinement(model):
             torch.testing.assert_close(getattr(out[value], field), getattr(ref, field), rtol=0, atol=0)
 
 
-def test_refinement_takes_gray_frames_and_reads_bad_weights_as_zero(model):
+def test_refinement_takes_gray_frames_and_refuses_bad_weights(model):
     """Gray (1-channel) frames, which the tracker takes, refine as their RGB frames do (they used to be refused at
-    the online start's re-anchoring, mid-stream); NaN, inf and negative landmark weights count as 0, as in the
-    landmark fit (they made the cost NaN, so the refinement never moved)."""
+    the online start's re-anchoring, mid-stream); NaN, inf and negative landmark weights are refused naming the
+    point, as every entry point that takes weights refuses them (they made the cost NaN, so the refinement never
+    moved; then they counted as 0 without a word); weight 0 ignores a point."""
     from torchface.appearance import to_gray
+    from torchface.tracker.lookahead import landmark_fit_priors
 
     frames, gt = render([[0.0, 0.0, 0.0], [20.0, 0.0, 0.0], [-20.0, 0.0, 0.0]])
     frames = frames.float() / 255.0 if frames.dtype == torch.uint8 else frames.float()
@@ -294,12 +300,17 @@ def test_refinement_takes_gray_frames_and_reads_bad_weights_as_zero(model):
     zero[30] = 0.0
     ref = refine(frames, zero)
     assert float(geodesic_angle_deg(ref.rotation.double(), start.rotation.double())) > 1.0  # it moves
-    for bad in (float("nan"), float("inf"), -1.0):
+    assert bool(torch.isfinite(ref.rms_px).all())
+    point = r"for landmark\(s\) \[30\]"
+    for bad, message in ((float("nan"), r"^landmark_weights must be numbers >= 0, got NaN " + point),
+                         (float("inf"), r"^landmark_weights must be finite, got inf " + point),
+                         (-1.0, r"^landmark_weights must be >= 0 \(0 ignores a point.*got -1 " + point + "$")):
         w = torch.ones(model.num_landmarks)
         w[30] = bad
-        out = refine(frames, w)
-        torch.testing.assert_close(out.axis_angle, ref.axis_angle, rtol=0, atol=1e-6)
-        assert bool(torch.isfinite(out.rms_px).all())
+        with pytest.raises(ValueError, match=message):
+            refine(frames, w)
+        with pytest.raises(ValueError, match=message):
+            landmark_fit_priors(model, FitConfig(), gt.intrinsics, lm, w)
 
 
 def test_refinement_takes_per_unit_shape_precisions(model):

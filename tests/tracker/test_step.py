@@ -1494,16 +1494,20 @@ def test_pyramid_for_faces_adds_a_level_per_doubling_of_the_face():
 
 
 def test_pyramid_for_faces_leaves_out_the_points_the_fit_ignores():
-    """A landmark of weight 0 (or negative, NaN, infinite: what the fit ignores) counted toward the face's size:
-    a detector's stray point of confidence 0 made a 200-pixel face look 1000 pixels wide, with two more levels."""
+    """A landmark of weight 0 (what the fit ignores) counted toward the face's size: a detector's stray point of
+    confidence 0 made a 200-pixel face look 1000 pixels wide, with two more levels. Negative, NaN and infinite
+    weights, which it once left out too, are refused, as every entry point that takes weights refuses them."""
     from torchface.tracker import pyramid_for_faces
 
     lm = torch.tensor([[[10.0, 20.0], [210.0, 120.0], [1010.0, 20.0]]] * 4)  # a 200-pixel face and a stray point
     base = TrackerConfig()
     assert pyramid_for_faces(base, lm, (1080, 1920)).num_levels == 5  # (no weights: the stray point counts)
-    for bad in (0.0, -1.0, float("nan"), float("inf")):
+    assert pyramid_for_faces(base, lm, (1080, 1920), torch.tensor([[1.0, 1.0, 0.0]] * 4)) is base
+    for bad in (-1.0, float("nan"), float("inf")):
         weights = torch.tensor([[1.0, 1.0, bad]] * 4)
-        assert pyramid_for_faces(base, lm, (1080, 1920), weights) is base, bad
+        with pytest.raises(ValueError, match=r"^weights must be .*for landmark\(s\) \[2\] of stream 0 \(and in "
+                                             r"stream\(s\) \[1, 2, 3\]\)"):
+            pyramid_for_faces(base, lm, (1080, 1920), weights)
     assert pyramid_for_faces(base, lm, (1080, 1920), torch.tensor([[True, True, False]] * 4)) is base
     with pytest.raises(ValueError, match=r"weights must be \(4, 3\) \(B, K\), got \(4, 2\)"):
         pyramid_for_faces(base, lm, (1080, 1920), torch.ones(4, 2))

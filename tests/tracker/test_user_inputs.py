@@ -7,7 +7,9 @@ normalised coordinates instead of pixels (from the caller and from a detector), 
 
 from __future__ import annotations
 
+import re
 import sys
+import warnings
 from pathlib import Path
 
 import pytest
@@ -109,13 +111,111 @@ def test_landmarks_that_fail_alone_as_before(clip, landmarks, status):
     assert result.status.tolist() == status
 
 
+def test_a_landmark_row_with_one_coordinate_alone_is_refused_by_every_entry_point(clip):
+    """A row with one coordinate NaN (or infinite) and the other finite was taken as a missing point by
+    ``FaceTracker.initialise`` (and ``fit_landmarks``, ``pyramid_for_faces``) and refused by ``torchface track``,
+    ``NormaliseFaces`` and ``track_sequence``. One rule now, in one function that all of them call: refused, naming
+    the row (and the stream of a batch), saying how a missing point is marked. A NaN row stays a missing point."""
+    from torchface.io.landmarks import missing_points_problem
+    from torchface.tracker import fit_landmarks, pyramid_for_faces
+    from training_hooks.transforms import FaceTrackingConfig, NormaliseFaces
+
+    frames, lm = clip
+    tracker = FaceTracker(CFG)
+    half = lm.clone()
+    half[5, 0] = float("nan")
+    said = (r"^landmarks_px: landmark\(s\) \[5\] have one coordinate NaN \(a missing point has neither\): mark a "
+            r"missing point with both coordinates NaN \(a NaN row\), or give a point you do not trust weight 0; one "
+            r"coordinate alone is most likely a bug upstream")
+    with pytest.raises(ValueError, match=said) as refused:
+        tracker.initialise(frames[:1], half[None])
+    with pytest.raises(ValueError, match=said):
+        fit_landmarks(tracker.model, half[None], _camera())
+    with pytest.raises(ValueError, match=said):
+        pyramid_for_faces(CFG, half[None], (H, W))
+    # a landmarks file's rule (torchface track) and NormaliseFaces' and track_sequence's is this one, word for word
+    rule = str(refused.value).removeprefix("landmarks_px: ").replace(", or give a point you do not trust weight 0", "")
+    assert missing_points_problem(half.double().numpy()) == rule
+    with pytest.raises(ValueError, match=f"^landmarks: {re.escape(rule)}$"):
+        NormaliseFaces(FaceTrackingConfig(face_size=32))(frames[:1], half)
+    inf = lm.clone()
+    inf[7, 1] = float("inf")
+    with pytest.raises(ValueError, match=r"^landmarks_px: landmark\(s\) \[7\] of stream 1 have one coordinate NaN "
+                                         r"or infinite"):
+        tracker.initialise(frames[:2], torch.stack([lm, inf]))
+    missing = lm.clone()
+    missing[5] = float("nan")  # both coordinates: a missing point, as before
+    assert int(tracker.initialise(frames[:1], missing[None]).status) == CONVERGED
+
+
+def _camera():
+    from torchface.geometry import Intrinsics
+
+    return Intrinsics.default(W, H)
+
+
+@pytest.mark.parametrize(
+    "bad, said",
+    [(-0.5, r"^weights must be >= 0 \(0 ignores a point; 1 is what the fit's priors are set for\), got -0.5 for "
+            r"landmark\(s\) \[3\]$"),
+     (float("nan"), r"^weights must be numbers >= 0, got NaN for landmark\(s\) \[3\]: give a point you do not "
+                    r"trust weight 0"),
+     (float("inf"), r"^weights must be finite, got inf for landmark\(s\) \[3\]")],
+    ids=["negative", "nan", "inf"],
+)
+def test_negative_nan_or_infinite_landmark_weights_are_refused(clip, bad, said):
+    """Negative, NaN and infinite landmark weights were read as weight 0 (the point ignored) without a word; they are
+    refused by ``FaceTracker.initialise`` (and the functional ``initialise``), ``fit_landmarks`` and
+    ``pyramid_for_faces``, naming the point; weight 0 still ignores a point."""
+    from torchface.tracker import fit_landmarks, initialise, pyramid_for_faces
+
+    frames, lm = clip
+    weights = torch.ones(1, 68)
+    weights[0, 3] = bad
+    tracker = FaceTracker(CFG)
+    with pytest.raises(ValueError, match=said):
+        tracker.initialise(frames[:1], lm[None], weights=weights)
+    with pytest.raises(ValueError, match=said):
+        initialise(tracker.model, CFG, frames[:1], lm[None], _camera(), weights)
+    with pytest.raises(ValueError, match=said):
+        fit_landmarks(tracker.model, lm[None], _camera(), weights)
+    with pytest.raises(ValueError, match=said):
+        pyramid_for_faces(CFG, lm[None], (H, W), weights)
+    weights[0, 3] = 0.0
+    assert int(tracker.initialise(frames[:1], lm[None], weights=weights).status) == CONVERGED
+
+
+def test_intrinsics_that_look_mixed_up_are_named_and_tracked(clip):
+    """Intrinsics in OpenCV's matrix order (``fx, cx, fy, cy`` for ``fx, fy, cx, cy``) were tracked without a word
+    (a camera that sees the face 2x stretched); a size swapped or given among the other numbers was told the size
+    alone. ``initialise`` names a likely mix-up with the fix in a ``UserWarning`` and tracks (nothing there is
+    impossible), and the size check says which mix-up its numbers show; a plausible camera has no word."""
+    from torchface.geometry import Intrinsics
+
+    frames, lm = clip
+    with pytest.warns(UserWarning, match=r"^intrinsics fx=160, fy=79.5, cx=160, cy=59.5 for a 160x120 frame look "
+                                         r"mixed up: OpenCV's matrix order .*Intrinsics\(160, 120, fx=160, fy=160, "
+                                         r"cx=79.5, cy=59.5\)"):
+        result = FaceTracker(CFG).initialise(frames[:1], lm[None], Intrinsics(160, 120, 160.0, 79.5, 160.0, 59.5))
+    assert result.status.shape == (1,)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        FaceTracker(CFG).initialise(frames[:1], lm[None], Intrinsics(160, 120, 170.0, 160.0, 70.0, 50.0))
+    with pytest.raises(ValueError, match=r"^frames must be 120x160 \(W x H, the intrinsics' size\), got 160x120 "
+                                         r"\(width and height swapped\? Intrinsics\(160, 120, fx, fy, cx, cy\)"):
+        FaceTracker(CFG).initialise(frames[:1], lm[None], Intrinsics(120, 160, 160.0, 160.0, 79.5, 59.5))
+    with pytest.raises(ValueError, match=r"^frames must be 200x200 .*got 160x120 \(the size given among fx, fy, cx, "
+                                         r"cy\? Intrinsics takes \(width, height, fx, fy, cx, cy\)"):
+        FaceTracker(CFG).initialise(frames[:1], lm[None], Intrinsics(200, 200, 79.5, 59.5, 160, 120))
+
+
 def test_a_detector_answering_normalised_coordinates_is_named(clip):
     """A detector (``FaceTracker(detector=...)``) that answers MediaPipe's normalised coordinates failed every fit at
     each recovery attempt: the stream stayed LOST without a word. It was then refused with a ``ValueError`` at the
     restart, which a detector answering pixels for other streams (two detectors behind one) raised too whenever the
     normalised streams restarted alone. Now such a stream fails its restart alone: LOST, its result's
     ``start_failure`` says NORMALISED_LANDMARKS, and a ``RuntimeWarning`` says how to make pixels. One answering
-    pixels starts it."""
+    pixels starts it (even with a row of one coordinate alone, taken as missing with a ``RuntimeWarning``)."""
     frames, lm = clip
     nan = torch.full((1, 68, 2), float("nan"))
     tracker = FaceTracker(CFG, detector=lambda batch: normalised(lm)[None].expand(batch.shape[0], -1, -1).clone())
@@ -131,9 +231,15 @@ def test_a_detector_answering_normalised_coordinates_is_named(clip):
                 reasons.append(int(result.start_failure))
     assert reasons and set(reasons) == {int(StartFailure.NORMALISED_LANDMARKS)}
     assert result.start_failure_reasons[0] is None or "normalised" in result.start_failure_reasons[0]
-    tracker = FaceTracker(CFG, detector=lambda batch: lm[None].expand(batch.shape[0], -1, -1).clone())
+    # (a detector's row with one coordinate alone, refused where a user gives it, is a missing point with a word:
+    # a restart never raises)
+    half = lm.clone()
+    half[5, 1] = float("nan")
+    tracker = FaceTracker(CFG, detector=lambda batch: half[None].expand(batch.shape[0], -1, -1).clone())
     tracker.initialise(frames[:1], nan)
-    statuses = [int(tracker(frames[t : t + 1]).status) for t in (1, 2, 1, 2, 1, 2)]
+    with pytest.warns(RuntimeWarning, match=r"^the detector's landmark\(s\) \[5\] have one coordinate NaN .*: those "
+                                            r"points are taken as missing$"):
+        statuses = [int(tracker(frames[t : t + 1]).status) for t in (1, 2, 1, 2, 1, 2)]
     assert statuses[0] == LOST and CONVERGED in statuses
 
 

@@ -268,7 +268,9 @@ def test_landmarks_with_too_few_points_half_nan_rows_or_infinite_values_are_refu
     inf[50, 1] = np.inf
     cases = [
         (few, r"3 of the 68 iBUG points given, the others missing \(NaN\): the landmark fit needs at least 4"),
-        (half, r"landmark\(s\) \[12, 40\] have one coordinate NaN \(a missing point has neither\)"),
+        (half, r"landmark\(s\) \[12, 40\] have one coordinate NaN \(a missing point has neither\): mark a missing "
+               r"point with both coordinates NaN \(a NaN row\); one coordinate alone is most likely a bug upstream "
+               r"\(a column lost or shifted\)"),
         (inf, r"landmark\(s\) \[50\] are infinite \(a missing point is a NaN row\)"),
     ]
     frames = read_video(clip.video)[:2]

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 import numbers
 from dataclasses import dataclass
+from typing import cast
 
 import torch
 
@@ -41,7 +42,9 @@ class Intrinsics:
                 value = int(value)  # a 0-d integer tensor
             if isinstance(value, bool) or not isinstance(value, numbers.Integral):
                 if isinstance(value, bool) or not (isinstance(value, numbers.Real) and float(value).is_integer()):
-                    raise TypeError(f"{name} must be a whole number of pixels, got {value!r}")
+                    raise TypeError(f"{name} must be a whole number of pixels, got {value!r} (Intrinsics takes "
+                                    "width, height, fx, fy, cx, cy in this order; from a 3x3 calibration matrix: "
+                                    "Intrinsics.from_matrix(K, width, height))")
             object.__setattr__(self, name, int(value))  # 32.0 -> 32, numpy integers -> int: sizes index tensors
         if self.width <= 0 or self.height <= 0:
             raise ValueError(f"image size must be positive, got {self.width}x{self.height}")
@@ -77,6 +80,63 @@ class Intrinsics:
         f = float(max(w, h)) if focal is None else float(focal)
         return cls(w, h, f, f, (w - 1) / 2.0, (h - 1) / 2.0)
 
+    @classmethod
+    def from_matrix(cls, matrix: object, width: int, height: int) -> "Intrinsics":
+        """Intrinsics of a ``width x height`` frame from its 3x3 calibration matrix
+        ``K = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]`` (OpenCV's ``cameraMatrix``, row by row), given as a tensor, a
+        NumPy array or nested lists. The constructor takes ``fx, fy, cx, cy``, not the matrix's order
+        ``fx, cx, fy, cy``: read from here, the entries cannot be mixed up. Entries of a tensor that requires grad
+        are kept as 0-d tensors (differentiable), as the constructor keeps them.
+
+        Raises:
+            TypeError, ValueError: not a 3x3 matrix of real numbers (a 3x4 projection matrix ``K [R | t]`` is
+                told so), entries not finite, a last row other than ``(0, 0, 1)`` (a transposed matrix, its last
+                row ``(cx, cy, 1)``, is told to pass ``K.T``; a matrix scaled by ``K[2, 2]`` to divide by it), a skew
+                ``K[0, 1]`` or a ``K[1, 0]`` that is not 0 (the tracker's pinhole camera has none), a size or focal
+                lengths the constructor refuses.
+
+        Example:
+            >>> K = [[600.0, 0.0, 320.0], [0.0, 600.0, 240.0], [0.0, 0.0, 1.0]]
+            >>> cam = Intrinsics.from_matrix(K, 640, 480)
+            >>> (cam.fx, cam.fy, cam.cx, cam.cy)
+            (600.0, 600.0, 320.0, 240.0)
+        """
+        grad = isinstance(matrix, torch.Tensor) and matrix.requires_grad
+        if isinstance(matrix, torch.Tensor):
+            if matrix.dtype == torch.bool or matrix.is_complex():
+                raise TypeError(f"matrix must hold real numbers, got {matrix.dtype}")
+            K = matrix if grad else matrix.detach().to("cpu", torch.float64)
+        else:
+            try:
+                K = torch.as_tensor(matrix, dtype=torch.float64)
+            except (TypeError, ValueError, RuntimeError):
+                raise TypeError(f"matrix must be a 3x3 calibration matrix (a tensor, an array or nested lists), "
+                                f"got {type(matrix).__name__}") from None  # fmt: skip
+        if tuple(K.shape) != (3, 3):
+            hint = (" (a 3x4 projection matrix K [R | t]? Its left 3x3 block is K R, not K: decompose it, e.g. "
+                    "cv2.decomposeProjectionMatrix)" if tuple(K.shape) == (3, 4) else "")  # fmt: skip
+            raise ValueError(f"matrix must be 3x3, got shape {tuple(K.shape)}{hint}")
+        v = K.detach().to("cpu", torch.float64)
+        if not bool(torch.isfinite(v).all()):
+            raise ValueError(f"matrix must be finite, got {v.tolist()}")
+        last = v[2].tolist()
+        if last[:2] != [0.0, 0.0] or last[2] != 1.0:
+            if last[2] == 1.0 and v[0, 2] == 0 and v[1, 2] == 0 and v[1, 0] == 0 and v[0, 1] == 0:
+                hint = (f": the transpose of a calibration matrix (cx, cy = {last[0]:g}, {last[1]:g} in its last "
+                        "row)? Pass K.T")
+            elif last[:2] == [0.0, 0.0] and last[2] != 0:
+                hint = f": a matrix scaled by {last[2]:g}? Pass K / K[2, 2]"
+            else:
+                hint = ""
+            raise ValueError(f"matrix's last row must be (0, 0, 1), got ({last[0]:g}, {last[1]:g}, {last[2]:g}){hint}")
+        if abs(float(v[0, 1])) > 1e-6 * abs(float(v[0, 0])) or abs(float(v[1, 0])) > 1e-6 * abs(float(v[1, 1])):
+            raise ValueError(f"matrix must have no skew (K[0, 1] = K[1, 0] = 0: the tracker's pinhole camera has "
+                             f"square axes), got K[0, 1] = {float(v[0, 1]):g}, K[1, 0] = {float(v[1, 0]):g}")
+        if grad:  # 0-d tensors, which the constructor keeps (its fields are typed as the numbers they usually are)
+            fx, fy, cx, cy = cast("tuple[float, float, float, float]", (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
+            return cls(width, height, fx, fy, cx, cy)
+        return cls(width, height, float(v[0, 0]), float(v[1, 1]), float(v[0, 2]), float(v[1, 2]))
+
     @property
     def size(self) -> tuple[int, int]:
         """``(H, W)``."""
@@ -105,3 +165,71 @@ class Intrinsics:
         h = max(1, int(round(self.height * factor)))
         sx, sy = w / self.width, h / self.height
         return Intrinsics(w, h, self.fx * sx, self.fy * sy, (self.cx + 0.5) * sx - 0.5, (self.cy + 0.5) * sy - 0.5)
+
+
+#: The most the focal lengths of a frame's camera may differ (the larger over the smaller) before
+#: :func:`mixed_up_intrinsics` looks for a mix-up: pixels this far from square are rare (anamorphic lenses).
+PLAUSIBLE_ASPECT: float = 1.25
+
+
+def _fits(w: int, h: int, fx: float, fy: float, cx: float, cy: float, tight: bool) -> bool:
+    """Whether ``fx, fy, cx, cy`` are a plausible camera of a ``w x h`` frame: focal lengths within
+    :data:`PLAUSIBLE_ASPECT` of each other and at least 5 % of the frame's larger side (a field of view under 175
+    degrees), the principal point inside the frame; ``tight``: as a frame's camera nearly always is, focal lengths
+    within 10 % of each other and the principal point within 15 % of the frame's size from its centre."""
+    aspect = max(fx, fy) / min(fx, fy)
+    if tight:
+        return aspect <= 1.1 and abs(cx - (w - 1) / 2) <= 0.15 * w and abs(cy - (h - 1) / 2) <= 0.15 * h
+    return aspect <= PLAUSIBLE_ASPECT and min(fx, fy) >= 0.05 * max(w, h) and -0.5 <= cx <= w - 0.5 \
+        and -0.5 <= cy <= h - 0.5
+
+
+def mixed_up_intrinsics(intrinsics: Intrinsics) -> str | None:
+    """A hint, as one line, where a frame's camera looks like a mix-up of the constructor's arguments, with the
+    likely fix; None for a plausible camera (and for entries that are tensors: a calibration being optimised).
+
+    Nothing here is impossible (a principal point off the frame's centre, or outside a crop of the sensor, and
+    non-square pixels exist), so :func:`~torchface.tracker.step.initialise` warns with it and tracks on
+    (:func:`~torchface.tracker.step.check_initialise_inputs`). A camera is looked at where it is implausible: focal
+    lengths more than :data:`PLAUSIBLE_ASPECT` apart, one under 5 % of the frame's larger side, or the principal
+    point outside the frame. Recognised, where the mix-up's reading is a frame's usual camera (focal lengths within
+    10 %, the principal point near the centre):
+
+    - OpenCV's matrix order ``fx, cx, fy, cy`` (``K``'s entries row by row) given as ``fx, fy, cx, cy``;
+    - the principal point and the focal lengths swapped (``cx, cy, fx, fy``);
+    - normalised intrinsics (``fx / W``, ``cx / W``: a focal length of about one pixel);
+    - a principal point at ``(0, 0)``, the top-left pixel (a transposed ``K`` read, or a camera whose image
+      coordinates are centred; torchface's pixel centres are at integers from the top-left, the centre at
+      ``((W - 1) / 2, (H - 1) / 2)``).
+
+    Example:
+        >>> mixed_up_intrinsics(Intrinsics(640, 480, 600.0, 319.5, 600.0, 239.5))  # doctest: +ELLIPSIS
+        "...OpenCV's matrix order (fx, cx, fy, cy)...: Intrinsics(640, 480, fx=600, fy=600, cx=319.5, cy=239.5)..."
+        >>> mixed_up_intrinsics(Intrinsics(640, 480, 900.0, 900.0, 100.0, 400.0)) is None  # off-centre: plausible
+        True
+    """
+    entries = (intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy)
+    if any(isinstance(v, torch.Tensor) for v in entries):
+        return None
+    w, h = intrinsics.width, intrinsics.height
+    fx, fy, cx, cy = (float(v) for v in entries)
+    given = f"fx={fx:g}, fy={fy:g}, cx={cx:g}, cy={cy:g} for a {w}x{h} frame"
+    if cx == 0 and cy == 0 and min(w, h) > 1:
+        return (f"intrinsics {given} put the principal point at the top-left pixel: a transposed K read (K[0, 2], "
+                f"K[1, 2] are cx, cy), or a camera in centred coordinates? torchface's pixel centres are at integers "
+                f"from the top-left, a centred camera's principal point ({(w - 1) / 2:g}, {(h - 1) / 2:g})")
+    if _fits(w, h, fx, fy, cx, cy, tight=False):
+        return None
+    readings = (
+        ("OpenCV's matrix order (fx, cx, fy, cy), K's entries row by row, given as (fx, fy, cx, cy)?",
+         (fx, cx, fy, cy)),
+        ("the focal lengths and the principal point swapped (cx, cy, fx, fy)?", (cx, cy, fx, fy)),
+        ("normalised intrinsics (fx / W, fy / H, cx / W, cy / H)?", (fx * w, fy * h, cx * w - 0.5, cy * h - 0.5)),
+    )
+    for what, (a, b, c, d) in readings:
+        if min(a, b) > 0 and _fits(w, h, a, b, c, d, tight=True):
+            return (f"intrinsics {given} look mixed up: {what} Likely meant: Intrinsics({w}, {h}, fx={a:g}, fy={b:g}, "
+                    f"cx={c:g}, cy={d:g}), or Intrinsics.from_matrix(K, {w}, {h}) from a 3x3 calibration matrix")
+    return (f"intrinsics {given} are implausible (focal lengths more than {PLAUSIBLE_ASPECT:g} apart, under 5 % of "
+            f"the frame's size, or a principal point outside the frame): check the order, Intrinsics(width, height, "
+            f"fx, fy, cx, cy), or use Intrinsics.from_matrix(K, {w}, {h})")

@@ -317,7 +317,9 @@ def landmark_targets(landmarks_px: Tensor, weights: Tensor | None = None) -> tup
     Returns:
         ``targets (..., K, 2)``: the landmarks, non-finite coordinates set to 0 (they weigh 0, and a product of 0
         with an infinite target's square would be NaN); ``weights (..., K)``: 0 for a missing point and for a NaN,
-        infinite or negative weight, the weight elsewhere; both in ``landmarks_px``' dtype and device.
+        infinite or negative weight, the weight elsewhere; both in ``landmarks_px``' dtype and device. (The entry
+        points refuse rows with one coordinate alone and NaN, infinite or negative weights:
+        :func:`check_landmark_values`; this reads what they let through, and a detector's answer.)
     """
     finite = torch.isfinite(landmarks_px)
     w = torch.ones_like(landmarks_px[..., 0]) if weights is None else weights.to(landmarks_px)
@@ -372,6 +374,81 @@ def check_landmark_type(landmarks_px: object, shape: str) -> None:
     check_holds_data(landmarks_px, "landmarks_px")
     if landmarks_px.dtype == torch.bool or landmarks_px.is_complex():
         raise TypeError(f"landmarks_px must be real pixel coordinates (float or int), got {landmarks_px.dtype}")
+
+
+def _points_named(bad: Tensor) -> str:
+    """``landmark(s) [3, 7]`` for the True entries of a ``(K,)`` or ``(B, K)`` bool mask (at most 8 listed), with
+    ``of stream b`` and the other streams' numbers where a batch of more than one stream holds them."""
+    bad = bad.detach().cpu()
+    if bad.dim() < 2 or bad.shape[0] == 1:
+        return f"landmark(s) {bad.reshape(-1, bad.shape[-1]).any(0).nonzero().flatten().tolist()[:8]}"
+    flat = bad.reshape(-1, bad.shape[-1])
+    streams = flat.any(-1).nonzero().flatten().tolist()
+    more = f" (and in stream(s) {streams[1:9]})" if len(streams) > 1 else ""
+    return f"landmark(s) {flat[streams[0]].nonzero().flatten().tolist()[:8]} of stream {streams[0]}{more}"
+
+
+def partly_missing_problem(landmarks_px: Tensor, *, weighted: bool = True) -> str | None:
+    """One line naming the rows of ``(K, 2)`` or ``(B, K, 2)`` landmarks that hold one coordinate and not the other
+    (one NaN or infinite, the other finite), or None: the one rule every landmark input follows (the Python API's
+    :func:`check_landmark_values`; a landmarks file's and ``training_hooks``' arrays,
+    :func:`torchface.io.landmarks.missing_points_problem`). A missing point is a NaN row, both coordinates NaN; a row
+    with one coordinate alone is almost surely a bug upstream (a column lost or shifted, one coordinate of a point
+    masked), and it used to be taken as missing by :class:`~torchface.tracker.FaceTracker` and refused by the
+    command line. ``weighted``: the input takes weights (the message then says that weight 0 ignores a point).
+
+    Example:
+        >>> lm = torch.tensor([[1.0, 2.0], [float("nan"), 3.0]])
+        >>> partly_missing_problem(lm, weighted=False)  # doctest: +ELLIPSIS
+        'landmark(s) [1] have one coordinate NaN (a missing point has neither): mark a missing point with both ...'
+    """
+    lm = landmarks_px.detach()
+    if not lm.is_floating_point() or lm.dim() < 2 or lm.shape[-1] != 2:  # (integers are finite; shapes: callers')
+        return None
+    finite = torch.isfinite(lm)
+    partly = finite.any(-1) & ~finite.all(-1)
+    if not bool(partly.any()):
+        return None
+    what = "NaN" if bool((torch.isnan(lm).any(-1) | ~partly).all()) else "NaN or infinite"
+    zero = ", or give a point you do not trust weight 0" if weighted else ""
+    return (f"{_points_named(partly)} have one coordinate {what} (a missing point has neither): mark a missing point "
+            f"with both coordinates NaN (a NaN row){zero}; one coordinate alone is most likely a bug upstream (a "
+            "column lost or shifted)")
+
+
+def check_landmark_values(
+    landmarks_px: Tensor, weights: Tensor | None = None, *, name: str = "landmarks_px", weights_name: str = "weights"
+) -> None:
+    """Refuse, with a ``ValueError`` naming the points, ``(..., K, 2)`` landmarks with a row that holds one coordinate
+    alone (:func:`partly_missing_problem`) and ``(..., K)`` ``weights`` (checked for shape by the caller) that are
+    NaN, infinite or negative: they were taken as weight 0 without a word (:func:`landmark_targets`), where they are
+    almost surely a bug (a confidence of NaN from a failed detection, a log-probability given as a weight). Weights
+    are ``>= 0``: 0 ignores a point (as a NaN row does), 1 is what the fit's priors are set for. The checks of
+    :func:`fit_landmarks`, :func:`~torchface.tracker.step.initialise` (and so
+    :class:`~torchface.tracker.FaceTracker`), :func:`~torchface.tracker.step.pyramid_for_faces` and the look-ahead's
+    refinement."""
+    problem = partly_missing_problem(landmarks_px)
+    if problem is not None:
+        raise ValueError(f"{name}: {problem}")
+    if weights is None or weights.dtype == torch.bool:
+        return
+    w = weights.detach()
+    bad = w < 0
+    if w.is_floating_point():
+        bad = bad | ~torch.isfinite(w)
+    if not bool(bad.any()):
+        return
+    nan = torch.isnan(w) if w.is_floating_point() else torch.zeros_like(bad)
+    if bool(nan.any()):
+        raise ValueError(f"{weights_name} must be numbers >= 0, got NaN for {_points_named(nan)}: give a point you do "
+                         "not trust weight 0 (or a NaN row in the landmarks for a missing one)")  # fmt: skip
+    inf = torch.isinf(w) if w.is_floating_point() else torch.zeros_like(bad)
+    if bool(inf.any()):
+        raise ValueError(f"{weights_name} must be finite, got {float(w[inf][0]):g} for {_points_named(inf)}: a "
+                         "weight scales its landmark's squared error (1 is what the fit's priors are set for; 0 "
+                         "ignores the point)")  # fmt: skip
+    raise ValueError(f"{weights_name} must be >= 0 (0 ignores a point; 1 is what the fit's priors are set for), got "
+                     f"{float(w[bad][0]):g} for {_points_named(bad)}")  # fmt: skip
 
 
 def _check_landmark_indices(idx: object, num_landmarks: int) -> None:
@@ -525,6 +602,7 @@ def _check_landmarks(
         raise TypeError(f"weights must be a ({B}, {k}) tensor or None, got {type(weights).__name__}")
     if weights is not None and weights.shape != (B, k):
         raise ValueError(f"weights must be (B, K) = ({B}, {k}), got {tuple(weights.shape)}")
+    check_landmark_values(landmarks_px, weights)
     # contiguous: the fit's sums over the points follow the memory order (a transposed view's fit was 5e-4 mm off)
     lm = landmarks_px.to(dtype=dtype, device=device).contiguous()
     target, w = landmark_targets(lm, None if weights is None else weights.to(lm).contiguous())
@@ -667,9 +745,11 @@ def fit_landmarks(
     Args:
         model: the face model; its landmark table gives the 3D points.
         landmarks_px: ``(B, K, 2)`` pixel positions of the model's landmarks (all of them, or those listed in
-            ``landmark_indices``). A NaN or infinite coordinate marks a missing point.
+            ``landmark_indices``). A NaN row (or an infinite one) marks a missing point; a row with one coordinate
+            alone is refused (:func:`check_landmark_values`).
         intrinsics: the camera.
-        weights: ``(B, K)`` non-negative confidences ``w_k`` (0 = ignore), or None for all ones. They multiply
+        weights: ``(B, K)`` non-negative confidences ``w_k`` (0 = ignore), or None for all ones; NaN, infinite and
+            negative ones are refused (:func:`check_landmark_values`). They multiply
             each landmark's squared pixel error against the priors, so their scale counts: 1 is what the priors
             (:class:`FitConfig`) are set for, and weights all halved make the priors count twice as much (2 px
             noisy landmarks on a 320x240 face: 0.03-0.08 degrees and 0.2-0.3 mm from the fit with ones; all 0.01:

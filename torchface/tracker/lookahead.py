@@ -56,8 +56,8 @@ from torchface.rendering.rasterizer import rasterize_coverage
 from torchface.rendering.visibility import points_visible
 from torchface.template.points import gather_face_attributes, point_normals, select_template_pixels
 from torchface.tracker.fit import (
-    FitConfig, LandmarkFit, check_landmark_type, check_precisions, fit_landmarks, held_shape_indices, landmark_targets,
-    prior_scale, shape_precisions, shape_prior_vector, sparse_samples,
+    FitConfig, LandmarkFit, check_landmark_type, check_landmark_values, check_precisions, fit_landmarks,
+    held_shape_indices, landmark_targets, prior_scale, shape_precisions, shape_prior_vector, sparse_samples,
 )
 from torchface.tracker.step import TrackerConfig, check_api_types, gray_pyramid, level_intrinsics
 
@@ -353,6 +353,12 @@ def landmark_fit_priors(
         if landmarks_px.dim() != 2 or landmarks_px.shape[-1] != 2:  # (a batch's (B, L, 2) was "Boolean value of
             # Tensor with more than one value is ambiguous")
             raise ValueError(f"landmarks_px must be one stream's (L, 2) landmarks, got {tuple(landmarks_px.shape)}")
+        if landmark_weights is not None and (not isinstance(landmark_weights, Tensor)
+                                             or tuple(landmark_weights.shape) != tuple(landmarks_px.shape[:1])):
+            got = (tuple(landmark_weights.shape) if isinstance(landmark_weights, Tensor)
+                   else type(landmark_weights).__name__)  # fmt: skip
+            raise ValueError(f"landmark_weights must be ({landmarks_px.shape[0]},) or None, got {got}")
+        check_landmark_values(landmarks_px, landmark_weights, weights_name="landmark_weights")
         lm = landmarks_px.detach().to(dtype=model.dtype)  # (positive in the model's dtype, as the fit counts them)
         count = (landmark_targets(lm, landmark_weights)[1] > 0).sum(-1)
         sparse = bool(sparse_samples(fit_config, count, model.num_shape, model.num_animation))
@@ -517,6 +523,7 @@ def _stream_start(
                                          or tuple(landmark_weights.shape) != (L,)):  # fmt: skip
         got = tuple(landmark_weights.shape) if isinstance(landmark_weights, Tensor) else type(landmark_weights).__name__
         raise ValueError(f"landmark_weights must be ({L},) or None, got {got}")
+    check_landmark_values(landmarks_px, landmark_weights, weights_name="landmark_weights")
     pscale = check_real(prior_scale, "prior_scale")
     if not (math.isfinite(pscale) and pscale > 0):  # (NaN, infinite or negative precisions would reach the solve)
         raise ValueError(f"prior_scale must be a positive finite number, got {prior_scale!r}")

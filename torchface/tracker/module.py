@@ -266,16 +266,19 @@ class FaceTracker(DeviceCheckedModule):
         Args:
             frames: ``(B, 3, H, W)`` RGB or ``(B, 1, H, W)`` gray, float in [0, 1] (values outside
                 :data:`~torchface.tracker.step.FRAME_VALUE_RANGE` are refused: divide 0-255 frames by 255).
-            landmarks_px: ``(B, K, 2)`` the model's K landmarks (68 iBUG points for CANDIDE-3) in pixels; NaN or
-                infinite: missing. A stream whose start fails (fewer than 4: no face found in its frame; landmarks
-                that hold no pose, a face too small, a black frame: :func:`~torchface.tracker.initialise`) starts
-                FAILED and holds its finite estimate at confidence 0, LOST until the ``detector`` finds its face
-                (FAILED at every frame without template management); the others track as without it. The result's
+            landmarks_px: ``(B, K, 2)`` the model's K landmarks (68 iBUG points for CANDIDE-3) in pixels; a NaN row
+                (or infinite): missing; a row with one coordinate alone is refused
+                (:func:`~torchface.tracker.fit.check_landmark_values`). A stream whose start fails (fewer than 4: no
+                face found in its frame; landmarks that hold no pose, a face too small, a black frame:
+                :func:`~torchface.tracker.initialise`) starts FAILED and holds its finite estimate at confidence 0,
+                LOST until the ``detector`` finds its face (FAILED at every frame without template management); the
+                others track as without it. The result's
                 ``start_failure`` says why each stream failed (:class:`~torchface.tracker.step.StartFailure`; in
                 words: ``start_failure_reasons``).
             intrinsics: camera; default :meth:`Intrinsics.default` of the frame size.
-            weights: ``(B, K)`` landmark confidences (0 = ignore; their scale weighs the landmarks against the
-                fit's priors, 1 as they are set for: :func:`~torchface.tracker.fit.fit_landmarks`) or None.
+            weights: ``(B, K)`` landmark confidences ``>= 0`` (0 = ignore; their scale weighs the landmarks against
+                the fit's priors, 1 as they are set for: :func:`~torchface.tracker.fit.fit_landmarks`) or None; NaN,
+                infinite and negative ones are refused.
             fit: the first frames' fit when already made (e.g. by
                 :func:`~torchface.tracker.lookahead.lookahead_fit`); None fits the landmarks. The online start
                 (``refine_first``) still re-anchors from it once the head turns: ``torchface track --lookahead``

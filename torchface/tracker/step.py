@@ -12,6 +12,7 @@ import ctypes
 import enum
 import math
 import threading
+import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
@@ -31,7 +32,7 @@ from torchface.conventions import MEDIAPIPE_MESH_HINT, MEDIAPIPE_MESH_POINT_COUN
 from torchface.geometry._checks import (
     check_bool, check_choice, check_int, check_intrinsics, check_ints, check_number, check_reals,
 )
-from torchface.geometry.camera import Intrinsics
+from torchface.geometry.camera import Intrinsics, mixed_up_intrinsics
 from torchface.geometry.projection import project_points
 from torchface.geometry.so3 import axis_angle_to_matrix, matrix_to_axis_angle, matrix_to_euler
 from torchface.model.face_model import FaceModel
@@ -43,8 +44,8 @@ from torchface.template.management import TemplateConfig
 from torchface.template.points import Template, build_template
 from torchface.tracker.fast import FUNCTION_TOLERANCE, STEP_TOLERANCE, LevelCamera, robust_scale_of, solve_level
 from torchface.tracker.fit import (
-    MIN_FIT_LANDMARKS, FitConfig, LandmarkFit, _landmark_width_mm, check_landmark_type, check_model_landmarks,
-    check_pixel_landmarks, fit_landmarks, landmark_targets, normalised_streams,
+    MIN_FIT_LANDMARKS, FitConfig, LandmarkFit, _landmark_width_mm, check_landmark_type, check_landmark_values,
+    check_model_landmarks, check_pixel_landmarks, fit_landmarks, landmark_targets, normalised_streams,
 )
 from torchface.tracker.inference import without_autograd
 from torchface.tracker.objective import frame_residuals, warp_points
@@ -954,12 +955,27 @@ def check_frames(
         # (mid-stream, a new video's frames were told the size alone)
         tracked = size_of == "the tracked size"
         hint = ": a stream keeps its size, initialise again to track frames of another" if tracked else ""
+        if not tracked:
+            hint = _intrinsics_size_hint(intrinsics, frames.shape[-1], frames.shape[-2])
         raise ValueError(
             f"frames must be {intrinsics.width}x{intrinsics.height} (W x H, {size_of}), got "
             f"{frames.shape[-1]}x{frames.shape[-2]}{hint}"
         )
     if values:
         check_frame_values(frames, row_stride)
+
+
+def _intrinsics_size_hint(intrinsics: Intrinsics, width: int, height: int) -> str:
+    """Why intrinsics' size may differ from ``width x height`` frames, for :func:`check_frames`' message at the start:
+    width and height swapped, or the size among the other numbers (the arguments out of order); empty otherwise."""
+    if (intrinsics.width, intrinsics.height) == (height, width):
+        return f" (width and height swapped? Intrinsics({width}, {height}, fx, fy, cx, cy): the width first)"
+    others = [float(v) for v in (intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy)
+              if not isinstance(v, Tensor)]  # fmt: skip
+    if float(width) in others and float(height) in others:
+        return (" (the size given among fx, fy, cx, cy? Intrinsics takes (width, height, fx, fy, cx, cy); from a "
+                "3x3 calibration matrix: Intrinsics.from_matrix(K, width, height))")
+    return ""
 
 
 def check_model_precision(model: FaceModel) -> None:
@@ -1002,6 +1018,10 @@ def check_initialise_inputs(
     check_model_landmarks(model)  # (a model without landmarks: an IndexError from the pyramid's face size)
     check_intrinsics(intrinsics)  # (first: check_frames reads its size, an AttributeError for a tuple)
     check_frames(frames, intrinsics, values=True, size_of="the intrinsics' size")  # (nothing is tracked yet)
+    mixed_up = mixed_up_intrinsics(intrinsics)
+    if mixed_up is not None:  # (implausible, not impossible: tracked as given, with a word; from this line, so that
+        # Python's filter shows it once, not once per entry point that checks: FaceTracker, initialise_managed, ...)
+        warnings.warn(mixed_up, UserWarning, stacklevel=1)
     B, K = frames.shape[0], model.num_landmarks
     if B == 0:
         raise ValueError("frames must hold at least one stream (B >= 1), got B = 0")
@@ -1030,6 +1050,7 @@ def check_initialise_inputs(
         raise ValueError(f"weights must be ({B}, {K}), got {tuple(weights.shape)}")
     if weights is not None:
         check_holds_data(weights, "weights")
+    check_landmark_values(landmarks_px, weights)  # (a row with one coordinate alone; NaN, infinite, negative weights)
     check_pixel_landmarks(landmarks_px, frames.shape[-1], frames.shape[-2], weights)  # (not MediaPipe's [0, 1])
     _unit_weights(config, model.num_animation, frames)  # their count, before any work
 
@@ -1068,10 +1089,14 @@ def pyramid_for_faces(
             of the batch decides (its streams share one pyramid): none is made smaller than the reference at the
             coarsest level.
         size: ``(H, W)`` of the frames.
-        weights: ``(B, K)`` the landmarks' weights, or None: a point the landmark fit ignores (weight 0, negative,
-            NaN or infinite: :func:`~torchface.tracker.fit.landmark_targets`) is left out of its face's size, as a
-            missing one is (:class:`~torchface.tracker.FaceTracker` passes its ``weights``: two points of weight 0 at
-            the corners of a 640x360 frame gave a 190-pixel face five levels instead of three).
+        weights: ``(B, K)`` the landmarks' weights (``>= 0``), or None: a point the landmark fit ignores (weight 0)
+            is left out of its face's size, as a missing one is (:class:`~torchface.tracker.FaceTracker` passes its
+            ``weights``: two points of weight 0 at the corners of a 640x360 frame gave a 190-pixel face five levels
+            instead of three).
+
+    Raises:
+        TypeError, ValueError: landmarks or weights of the wrong type or shape, a landmark row with one coordinate
+            alone, NaN, infinite or negative weights (:func:`~torchface.tracker.fit.check_landmark_values`).
 
     Returns:
         ``config`` itself, or a copy with more ``num_levels`` and ``iterations``.
@@ -1090,6 +1115,7 @@ def pyramid_for_faces(
         raise TypeError(f"weights must be a (B, K) tensor or None, got {type(weights).__name__}")
     if weights is not None and tuple(weights.shape) != tuple(landmarks_px.shape[:2]):
         raise ValueError(f"weights must be {tuple(landmarks_px.shape[:2])} (B, K), got {tuple(weights.shape)}")
+    check_landmark_values(landmarks_px, weights)
     points = landmarks_px.detach().to(torch.float64)
     # (B, K, 1): the points the fit uses (finite, of positive weight: landmark_targets)
     seen = (landmark_targets(points, None if weights is None else weights.detach())[1] > 0).unsqueeze(-1)
@@ -1224,12 +1250,13 @@ def initialise(
         model: the face model.
         config: :class:`TrackerConfig`.
         frames: ``(B, 3, H, W)`` (or gray ``(B, 1, H, W)``) first frames, float in [0, 1].
-        landmarks_px: ``(B, K, 2)`` the model's landmarks in pixels (NaN = missing). A stream with fewer than
+        landmarks_px: ``(B, K, 2)`` the model's landmarks in pixels (a NaN row = missing; a row with one coordinate
+            alone is refused: :func:`~torchface.tracker.fit.check_landmark_values`). A stream with fewer than
             :data:`~torchface.tracker.fit.MIN_FIT_LANDMARKS` (4) of positive weight (all NaN: no face found) fails
             alone, FAILED at :func:`~torchface.tracker.fit.fit_landmarks`' placeholder pose.
         intrinsics: camera of ``frames``.
-        weights: ``(B, K)`` landmark confidences (0 = ignore; their scale counts against the fit's priors:
-            :func:`~torchface.tracker.fit.fit_landmarks`) or None.
+        weights: ``(B, K)`` landmark confidences ``>= 0`` (0 = ignore; their scale counts against the fit's priors:
+            :func:`~torchface.tracker.fit.fit_landmarks`) or None; NaN, infinite and negative ones are refused.
         fit: the first frames' fit when already made (batch ``B``; e.g. refined by
             :func:`~torchface.tracker.lookahead.lookahead_fit`); None fits the landmarks.
 
