@@ -216,7 +216,7 @@ def test_held_shape_units(model):
     for bad in (["Mouth width"], ("Mouth width", "Mouth width"), (3,)):
         with pytest.raises(ValueError, match="held_shape_units"):
             FitConfig(held_shape_units=bad)
-    with pytest.raises(ValueError, match="precisions"):
+    with pytest.raises(ValueError, match="held_shape_precision must be a finite number >= 0, got -1.0"):
         FitConfig(held_shape_precision=-1.0)
 
 
