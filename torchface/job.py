@@ -20,7 +20,10 @@ the batch, :meth:`~torchface.tracker.TrackerState.select`, and the others go on 
   a record of an earlier version does not: it looks for it again), but for a re-detection due after the last one,
   which the tracking goes on from, and the rows it tracks again for the online start, :attr:`_Stream.retrack`, as the
   uninterrupted run did) and ``restart_failures`` (those restarts that failed, counted by
-  :class:`~torchface.tracker.step.StartFailure` name, ``{}`` where none; this run's alone, as ``detector_calls``);
+  :class:`~torchface.tracker.step.StartFailure` name, ``{}`` where none). The three counts are the whole video's in
+  a resumed run too where it goes on from a checkpoint (which carries them, :func:`_restore_streams`) or tracks its
+  rows again (the recorded first-face search counted as the interrupted run made it); from its CSV's rows alone,
+  they count the recorded search and the rows this run tracks (the rows replayed say nothing of the detector);
 - ``<stem>_overlay.mp4``: wireframe, head axes (the CSV row's pose) and confidence on each frame, in step with the
   input's time (each row at the slot of its ``timestamp`` at the input's nominal rate: :class:`_VideoOut`'s ``timed``;
   one frame per row for a constant-rate input; a gap longer than :data:`OVERLAY_MAX_GAP_S`, a broken time, not filled);
@@ -97,7 +100,9 @@ again (:func:`_checkpoint_batches`), their states joined (:func:`torchface._chec
 rows (its checkpoint at 150) resumed byte for byte as the uninterrupted run (CSV, overlay, normalised face) alone,
 with ``smoothing``, with a detector re-detecting every 5 frames and as a batch of 3 sweeps of 193-200 frames, where
 from its CSV's rows it went up to 1.03 mm, 1.2 degrees and 0.12 of confidence off (the batch: 3.9 mm, 3.3 degrees,
-0.65); cost: :data:`CHECKPOINT_EVERY`.
+0.65); cost: :data:`CHECKPOINT_EVERY`. Ctrl-C and SIGTERM within the loop wait for its step boundary
+(:class:`_AtStepBoundary`), where every live video's checkpoint of that state is written before the signal's
+handler raises: a resume tracks no row again (a second signal interrupts at once, mid-step, without it).
 For the others (``max_frames`` rows or more, without a checkpoint) the template mosaic built before the interruption
 is not restored: on a
 clip whose head turns, the resumed rows can part from the uninterrupted run's by tenths of a degree to a degree once
@@ -1081,8 +1086,9 @@ class _Stream:
     # why its start (at frame ``start``) failed, NONE where it started (TrackResult.start_failure): the warning's
     # reason and the sidecar's start.failure
     start_failure: StartFailure = StartFailure.NONE
-    # the detector's restarts of its lost stream that this run tried and that failed, counted by StartFailure name
-    # (TrackResult.start_failure of managed_step; the rows replayed from a CSV: none): the sidecar's restart_failures
+    # the detector's restarts of its lost stream that failed, counted by StartFailure name (TrackResult.start_failure
+    # of managed_step; the rows replayed from a CSV: none, but a checkpoint's counts, _restore_streams): the
+    # sidecar's restart_failures
     restart_failures: dict[str, int] = field(default_factory=dict)
     # the times (seconds, FrameReader.timestamp) of the frames read and not yet written: last_frame's, then ahead's
     stamps: deque[float] = field(default_factory=deque)
@@ -2465,7 +2471,9 @@ def track_videos(
         torchface.detect.DetectorUnavailable: the detector is needed but not installed.
         KeyboardInterrupt: (Ctrl-C) passed on, its writers stopped, with a ``kept`` attribute saying what the run
             leaves for ``resume`` (:func:`_kept_outputs`: the partial CSVs and their complete rows, the videos
-            complete; or that nothing was written, interrupted before tracking).
+            complete; or that nothing was written, interrupted before tracking). In the per-frame loop, SIGINT's and
+            SIGTERM's Python handlers (the caller's own too) run at the end of the step under way, after every
+            live video's checkpoint (:class:`_AtStepBoundary`; the main thread only, the handlers given back after).
     """
     if isinstance(videos, (str, bytes, os.PathLike)):  # one path: its characters were taken as inputs
         raise TypeError(f"videos must be a sequence of paths, e.g. [{str(videos)!r}] for one video")
