@@ -47,6 +47,17 @@ def clips(tmp_path_factory):
     return out
 
 
+@pytest.fixture(scope="module")
+def batch_ref(clips, tmp_path_factory) -> Path:
+    """The folder of both clips' outputs, tracked uninterrupted as one batch (read only: shared by the tests that
+    compare a resumed batch with it)."""
+    ref = tmp_path_factory.mktemp("ref")
+    with pytest.MonkeyPatch.context() as m:  # (as every test here tracks: the checkpoints change no output)
+        m.setattr(torchface.job, "CHECKPOINT_EVERY", EVERY)
+        track_videos([v for v, _ in clips], _config(ref, clips))
+    return ref
+
+
 @pytest.fixture(autouse=True)
 def every(monkeypatch):
     monkeypatch.setattr(torchface.job, "CHECKPOINT_EVERY", EVERY)
@@ -189,11 +200,10 @@ def test_a_checkpoint_that_does_not_match_is_refused_with_a_warning(clips, tmp_p
     assert _resumed_without_its_checkpoint(clips, out, f"{ck}: not used (")["rows"] == STOP
 
 
-def test_a_batch_resumed_in_smaller_batches_goes_on_from_its_checkpoints(clips, tmp_path):
+def test_a_batch_resumed_in_smaller_batches_goes_on_from_its_checkpoints(clips, batch_ref, tmp_path):
     """A batch's videos resumed with a smaller ``max_batch`` are tracked in parts of their batch, each part's states
     joined alone: every video goes on from its checkpoint, without a warning, its rows those of the uninterrupted
     run to float rounding (the batch's composition: not to the byte)."""
-    track_videos([v for v, _ in clips], _config(tmp_path / "ref", clips))
     out = tmp_path / "out"
     _interrupted(clips, out)
     with warnings.catch_warnings():
@@ -201,7 +211,7 @@ def test_a_batch_resumed_in_smaller_batches_goes_on_from_its_checkpoints(clips, 
         track_videos([v for v, _ in clips], _config(out, clips, resume=True, max_batch=1))
     for v, _ in clips:
         assert json.loads((out / f"{v.stem}.json").read_text())["resumed"]["checkpoint"] == "split"
-        ref, got = (read_track_csv(d / f"{v.stem}.csv")[1] for d in (tmp_path / "ref", out))
+        ref, got = (read_track_csv(d / f"{v.stem}.csv")[1] for d in (batch_ref, out))
         np.testing.assert_allclose(got, ref, rtol=0, atol=1e-4, err_msg=v.stem)
 
 
@@ -342,7 +352,8 @@ def test_a_fresh_run_removes_an_earlier_runs_checkpoints(clips, tmp_path):
     assert not (out / "a.state.partial").exists() and not (out / "a.state.partial.tmp").exists()
 
 
-def test_a_video_that_stops_while_its_rows_are_replayed_leaves_its_batchs_state(clips, tmp_path, monkeypatch):
+def test_a_video_that_stops_while_its_rows_are_replayed_leaves_its_batchs_state(clips, batch_ref, tmp_path,
+                                                                              monkeypatch):  # fmt: skip
     """Two videos resumed from their checkpoints of one batch, the first of which cannot be read on (an
     ``InputError`` at its 4th frame, while its rows are replayed: the others go on): the second goes on from its own
     part of the batch's state, its rows those of the uninterrupted run to float rounding (tracked alone). (The
@@ -350,7 +361,6 @@ def test_a_video_that_stops_while_its_rows_are_replayed_leaves_its_batchs_state(
     went on from the first's state.)"""
     from torchface.io import InputError
 
-    track_videos([v for v, _ in clips], _config(tmp_path / "ref", clips))
     out = tmp_path / "out"
     _interrupted(clips, out)
     read = torchface.job._next_frame
@@ -369,7 +379,7 @@ def test_a_video_that_stops_while_its_rows_are_replayed_leaves_its_batchs_state(
             pass
     assert not (out / "a.json").exists()
     assert json.loads((out / "b.json").read_text())["resumed"]["checkpoint"] == "split"
-    ref, got = (read_track_csv(d / "b.csv")[1] for d in (tmp_path / "ref", out))
+    ref, got = (read_track_csv(d / "b.csv")[1] for d in (batch_ref, out))
     np.testing.assert_allclose(got, ref, rtol=0, atol=1e-4)
 
 
@@ -539,8 +549,9 @@ def _signalling_step(monkeypatch, at: int, signals: list[int]) -> list[int]:
     return calls
 
 
-def test_ctrl_c_writes_a_checkpoint_at_the_step_boundary_and_resumes_tracking_nothing_again(clips, tmp_path,
-                                                                                           monkeypatch):  # fmt: skip
+def test_ctrl_c_writes_a_checkpoint_at_the_step_boundary_and_resumes_tracking_nothing_again(
+    clips, batch_ref, tmp_path, monkeypatch
+):
     """Ctrl-C (SIGINT) mid-step, in a batch of 2: the step goes on to its rows (STOP + 1), the checkpoint of that
     consistent state is written after them, then KeyboardInterrupt as before (SIGINT's handler given back). The
     resume tracks no row again (one step: the last row's; it tracked those after the last periodic checkpoint
@@ -550,7 +561,6 @@ def test_ctrl_c_writes_a_checkpoint_at_the_step_boundary_and_resumes_tracking_no
     import signal
 
     names = [v.stem for v, _ in clips]
-    track_videos([v for v, _ in clips], _config(tmp_path / "ref", clips))
     for twice, videos, at in ((False, clips, STOP), (True, clips[:1], 5)):
         out = tmp_path / f"out{int(twice)}"
         _signalling_step(monkeypatch, at, [signal.SIGINT] * (2 if twice else 1))
@@ -566,7 +576,7 @@ def test_ctrl_c_writes_a_checkpoint_at_the_step_boundary_and_resumes_tracking_no
         warnings.simplefilter("error", RuntimeWarning)
         track_videos([v for v, _ in clips], _config(tmp_path / "out0", clips, resume=True))
     assert len(calls) == N - (STOP + 1)  # (the step of its last row alone)
-    assert _same_outputs(tmp_path / "ref", tmp_path / "out0", names) == []
+    assert _same_outputs(batch_ref, tmp_path / "out0", names) == []
     for n in names:
         assert json.loads((tmp_path / "out0" / f"{n}.json").read_text())["resumed"]["checkpoint"] == "exact"
 
