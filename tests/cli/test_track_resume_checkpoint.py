@@ -669,3 +669,23 @@ def test_the_step_boundary_defers_python_handlers_in_the_main_thread_alone():
     thread.start()
     thread.join()
     assert failed == [] and seen == [(signal.default_int_handler, None)]
+
+
+def test_a_checkpoints_detector_counts_are_checked_with_its_layout():
+    """The detector counts a checkpoint carries (``stream``'s ``detector_calls``, ``redetections``,
+    ``restart_failures``, which a resume goes on counting from) are part of its layout: missing, or not whole
+    numbers by name, the checkpoint is refused (not used, with a warning) before the resume reads them."""
+    from torchface.job import _check_checkpoint_layout
+
+    stream = {"low_count": 0, "smooth_restart": False, "detection_warned": False, "near": None, "detector_calls": 3,
+              "redetections": 1, "restart_failures": {"OUTSIDE_FRAME": 2}}  # fmt: skip
+    data = {"version": 3, "t": 7, "rows": 8, "start": 0, "row": None, "settings": "{}", "origin": {}, "batch": ["a"],
+            "index": 0, "state": {}, "smooth": None, "first_R": torch.eye(3)[None], "first_t": torch.zeros(1, 3),
+            "stream": stream}  # fmt: skip
+    _check_checkpoint_layout(data)
+    for key, value in (("detector_calls", "3"), ("redetections", None), ("restart_failures", {"OUTSIDE_FRAME": 2.0}),
+                       ("restart_failures", [2])):  # fmt: skip
+        with pytest.raises(ValueError, match="its detector counts are not of their layout"):
+            _check_checkpoint_layout(data | {"stream": stream | {key: value}})
+    with pytest.raises(ValueError, match=r"it lacks stream\.restart_failures"):
+        _check_checkpoint_layout(data | {"stream": {k: v for k, v in stream.items() if k != "restart_failures"}})
