@@ -20,7 +20,10 @@ the batch, :meth:`~torchface.tracker.TrackerState.select`, and the others go on 
   a record of an earlier version does not: it looks for it again), but for a re-detection due after the last one,
   which the tracking goes on from, and the rows it tracks again for the online start, :attr:`_Stream.retrack`, as the
   uninterrupted run did) and ``restart_failures`` (those restarts that failed, counted by
-  :class:`~torchface.tracker.step.StartFailure` name, ``{}`` where none; this run's alone, as ``detector_calls``);
+  :class:`~torchface.tracker.step.StartFailure` name, ``{}`` where none). The three counts are the whole video's in
+  a resumed run too where it goes on from a checkpoint (which carries them, :func:`_restore_streams`) or tracks its
+  rows again (the recorded first-face search counted as the interrupted run made it); from its CSV's rows alone,
+  they count the recorded search and the rows this run tracks (the rows replayed say nothing of the detector);
 - ``<stem>_overlay.mp4``: wireframe, head axes (the CSV row's pose) and confidence on each frame, in step with the
   input's time (each row at the slot of its ``timestamp`` at the input's nominal rate: :class:`_VideoOut`'s ``timed``;
   one frame per row for a constant-rate input; a gap longer than :data:`OVERLAY_MAX_GAP_S`, a broken time, not filled);
@@ -97,7 +100,9 @@ again (:func:`_checkpoint_batches`), their states joined (:func:`torchface._chec
 rows (its checkpoint at 150) resumed byte for byte as the uninterrupted run (CSV, overlay, normalised face) alone,
 with ``smoothing``, with a detector re-detecting every 5 frames and as a batch of 3 sweeps of 193-200 frames, where
 from its CSV's rows it went up to 1.03 mm, 1.2 degrees and 0.12 of confidence off (the batch: 3.9 mm, 3.3 degrees,
-0.65); cost: :data:`CHECKPOINT_EVERY`.
+0.65); cost: :data:`CHECKPOINT_EVERY`. Ctrl-C and SIGTERM within the loop wait for its step boundary
+(:class:`_AtStepBoundary`), where every live video's checkpoint of that state is written before the signal's
+handler raises: a resume tracks no row again (a second signal interrupts at once, mid-step, without it).
 For the others (``max_frames`` rows or more, without a checkpoint) the template mosaic built before the interruption
 is not restored: on a
 clip whose head turns, the resumed rows can part from the uninterrupted run's by tenths of a degree to a degree once
@@ -124,6 +129,7 @@ import math
 import os
 import queue
 import re
+import signal
 import socket
 import sys
 import threading
@@ -1077,8 +1083,9 @@ class _Stream:
     # why its start (at frame ``start``) failed, NONE where it started (TrackResult.start_failure): the warning's
     # reason and the sidecar's start.failure
     start_failure: StartFailure = StartFailure.NONE
-    # the detector's restarts of its lost stream that this run tried and that failed, counted by StartFailure name
-    # (TrackResult.start_failure of managed_step; the rows replayed from a CSV: none): the sidecar's restart_failures
+    # the detector's restarts of its lost stream that failed, counted by StartFailure name (TrackResult.start_failure
+    # of managed_step; the rows replayed from a CSV: none, but a checkpoint's counts, _restore_streams): the
+    # sidecar's restart_failures
     restart_failures: dict[str, int] = field(default_factory=dict)
     # the times (seconds, FrameReader.timestamp) of the frames read and not yet written: last_frame's, then ahead's
     stamps: deque[float] = field(default_factory=deque)
@@ -1277,7 +1284,64 @@ def _record_path(csv: Path) -> Path:
 CHECKPOINT_EVERY: int = 25
 
 #: The version of the checkpoint's layout (another one is not read: resumed from the rows, with a warning).
-_CHECKPOINT_VERSION = 2
+_CHECKPOINT_VERSION = 3  # (3: its stream entry holds the detector counts)
+
+
+#: The signals whose Python handlers the tracking loop runs at its step boundary (:class:`_AtStepBoundary`).
+_DEFERRED_SIGNALS: tuple[signal.Signals, ...] = (signal.SIGINT, signal.SIGTERM)
+
+
+class _AtStepBoundary:
+    """Within the block (:func:`_track_group`'s per-frame loop), SIGINT and SIGTERM whose handler is a Python one
+    (Ctrl-C's ``default_int_handler``, ``torchface track``'s SIGTERM handler, a caller's own) do not run it where the
+    signal arrives, mid-step (the tracker's state half updated, which no checkpoint can be written of): the loop
+    calls :meth:`check` once a step's rows are written, writes every live video's checkpoint of that consistent
+    state first (:func:`_write_checkpoints`), and the handler runs there (raising ``KeyboardInterrupt``, or the
+    command line's SIGTERM error). A second signal while one waits runs its handler at once (a step that hangs, a
+    read that blocks: the user's second Ctrl-C). A handler that is not a Python one (``SIG_IGN``: a parent that
+    ignores the signal, ``SIG_DFL``, one set outside Python) is left as it is, and nothing is deferred outside the
+    main thread (whose handlers only it runs) or outside the block: its previous handlers are put back as it ends,
+    and a signal that waited still ran there (after the loop's last step: its rows complete)."""
+
+    def __init__(self) -> None:
+        self._handlers: dict[int, Callable[[int, Any], Any]] = {}  # the handlers it runs, by signal
+        self._installed = False
+        self.pending: int | None = None  # the signal that waits for the step boundary
+
+    def __enter__(self) -> "_AtStepBoundary":
+        if threading.current_thread() is not threading.main_thread():
+            return self
+        for signum in _DEFERRED_SIGNALS:
+            previous = signal.getsignal(signum)
+            if callable(previous):  # (not SIG_IGN, SIG_DFL or None: a handler set outside Python)
+                self._handlers[signum] = previous
+                signal.signal(signum, self._defer)
+                self._installed = True
+        return self
+
+    def _defer(self, signum: int, frame: Any) -> None:
+        if self.pending is None:
+            self.pending = signum
+            return
+        self.pending = None  # a second one: its handler at once, mid-step (no checkpoint of that state)
+        self._handlers[signum](signum, frame)
+
+    def restore(self) -> None:
+        """Put the previous handlers back (a signal that waits still waits for :meth:`check`)."""
+        if self._installed:
+            self._installed = False
+            for signum, handler in self._handlers.items():
+                signal.signal(signum, handler)
+
+    def check(self) -> None:
+        """Run the handler of the signal that waits, if any (the step's rows and checkpoints written)."""
+        if self.pending is not None:
+            signum, self.pending = self.pending, None
+            self._handlers[signum](signum, sys._getframe(1))
+
+    def __exit__(self, *exc: object) -> None:
+        self.restore()
+        self.check()  # (one that arrived after the last check: run now, the loop over)
 
 
 def _checkpoint_path(csv: Path) -> Path:
@@ -1338,7 +1402,10 @@ def _write_checkpoints(
             "first_R": first_R[k : k + 1].detach().clone(), "first_t": first_t[k : k + 1].detach().clone(),
             "stream": {"low_count": s.low_count, "smooth_restart": s.smooth_restart,
                        "detection_warned": s.detection_warned,
-                       "near": None if s.near is None else torch.as_tensor(s.near)},
+                       "near": None if s.near is None else torch.as_tensor(s.near),
+                       # the sidecar's counts so far (a resume goes on counting from them: the whole video's)
+                       "detector_calls": s.detector_calls, "redetections": s.redetections,
+                       "restart_failures": dict(s.restart_failures)},
         }  # fmt: skip
         path = _checkpoint_path(paths[k]["csv"])
         tmp = path.with_name(path.name + ".tmp")
@@ -1413,7 +1480,8 @@ def _load_checkpoint(s: _Stream, csv: Path, config: JobConfig, model: FaceModel)
 #: What a checkpoint holds (:func:`_write_checkpoints`), and its ``stream`` entry.
 _CHECKPOINT_KEYS = frozenset({"version", "t", "rows", "start", "row", "settings", "origin", "batch", "index", "state",
                               "smooth", "first_R", "first_t", "stream"})  # fmt: skip
-_CHECKPOINT_STREAM_KEYS = frozenset({"low_count", "smooth_restart", "detection_warned", "near"})
+_CHECKPOINT_STREAM_KEYS = frozenset({"low_count", "smooth_restart", "detection_warned", "near", "detector_calls",
+                                     "redetections", "restart_failures"})  # fmt: skip
 
 
 def _check_checkpoint_layout(data: dict) -> None:
@@ -1429,6 +1497,10 @@ def _check_checkpoint_layout(data: dict) -> None:
     batch, index = data["batch"], data["index"]
     if not isinstance(stream, dict) or not isinstance(batch, list) or not all(isinstance(n, str) for n in batch):
         raise ValueError("its batch or bookkeeping is not of its layout")
+    failures = stream["restart_failures"]
+    if not all(isinstance(stream[k], int) for k in ("detector_calls", "redetections")) or not isinstance(
+            failures, dict) or not all(isinstance(k, str) and isinstance(v, int) for k, v in failures.items()):
+        raise ValueError("its detector counts are not of their layout")
     if not isinstance(index, int) or not 0 <= index < len(batch):
         raise ValueError(f"its place {index!r} is not in its batch of {len(batch)}")
     for name, shape in (("first_R", (1, 3, 3)), ("first_t", (1, 3))):
@@ -1509,6 +1581,10 @@ def _restore_streams(streams: list[_Stream]) -> None:
         s.low_count, s.smooth_restart = int(b["low_count"]), bool(b["smooth_restart"])
         s.detection_warned = bool(b["detection_warned"])
         s.near = None if b["near"] is None else b["near"].cpu().numpy()
+        # (this run's counts so far are of the replayed rows, which asked nothing, and of its first-face search,
+        # which the interrupted run's counts hold: replaced, not added to)
+        s.detector_calls, s.redetections = int(b["detector_calls"]), int(b["redetections"])
+        s.restart_failures = {str(k): int(v) for k, v in b["restart_failures"].items()}
         s.from_checkpoint = "exact" if whole else "split"
 
 
@@ -2277,8 +2353,8 @@ def _open_input(
         lm = config.landmarks[k] if config.landmarks else None
         t0 = time.perf_counter()
         recorded = _recorded_first_face(config, reader, name, model) if config.resume and lm is None else None
-        if recorded is not None:  # (the interrupted run's search: not made again)
-            start, calls = recorded[0], 0
+        if recorded is not None:  # (the interrupted run's search: not made again, its calls counted as it did)
+            start, calls = recorded[0], recorded[0] + 1
             points, source = recorded[1], f"detector:{config.detector}"
         else:  # (only a detector finds no face: a landmarks file's are the first frame's)
             find = partial(_first_landmarks, reader, landmarks=lm, detector=detector, detector_name=config.detector,
@@ -2392,7 +2468,9 @@ def track_videos(
         torchface.detect.DetectorUnavailable: the detector is needed but not installed.
         KeyboardInterrupt: (Ctrl-C) passed on, its writers stopped, with a ``kept`` attribute saying what the run
             leaves for ``resume`` (:func:`_kept_outputs`: the partial CSVs and their complete rows, the videos
-            complete; or that nothing was written, interrupted before tracking).
+            complete; or that nothing was written, interrupted before tracking). In the per-frame loop, SIGINT's and
+            SIGTERM's Python handlers (the caller's own too) run at the end of the step under way, after every
+            live video's checkpoint (:class:`_AtStepBoundary`; the main thread only, the handlers given back after).
     """
     if isinstance(videos, (str, bytes, os.PathLike)):  # one path: its characters were taken as inputs
         raise TypeError(f"videos must be a sequence of paths, e.g. [{str(videos)!r}] for one video")
@@ -2943,6 +3021,9 @@ def _track_group(
     mesh_tmp = [p["meshes"].with_name(p["meshes"].name + ".partial") for p in paths]
     t_start = time.perf_counter()
     batch = list(streams)  # (keep_going: those whose outputs cannot be opened leave it, and are abandoned)
+    # SIGINT and SIGTERM in the per-frame loop: at its step boundary, a checkpoint written first (_AtStepBoundary;
+    # not before it: the first fit, the look-ahead and the online start's initialisation are interrupted at once)
+    boundary = _AtStepBoundary()
     try:
         for k, (s, p) in enumerate(zip(batch, paths)):
             try:
@@ -3011,6 +3092,7 @@ def _track_group(
         t_track0 = t_iter = time.perf_counter()
         t_idle = 0.0  # the loop's time in which every live stream replayed rows from its CSV (timings_s.batch_fps)
         t = 0
+        boundary.__enter__()
         while True:
             replays = [s.replay if s.replay is not None and t < len(s.replay) else None for s in live]  # this frame's
             replaying = [r is not None for r in replays]  # (its row written already: drawn, not written again)
@@ -3058,7 +3140,8 @@ def _track_group(
             elif detector is not None and config.redetect_after > 0:
                 state = _maybe_redetect(model, config, state, frames, live, detector, intr, layout,
                                         [r is not None and t < len(r) - 1 for r in held])
-            if (t + 1) % CHECKPOINT_EVERY == 0 and t + 1 >= checkpoint_from:
+            stop = boundary.pending is not None  # (Ctrl-C, SIGTERM: this state's checkpoint, then the handler)
+            if (stop or (t + 1) % CHECKPOINT_EVERY == 0) and t + 1 >= checkpoint_from:
                 if not _write_checkpoints(state, smooth, first_R, first_t, live, live_paths, t,
                                           [not r for r in replaying]):  # fmt: skip
                     checkpoint_from = sys.maxsize  # (warned: none for this batch)
@@ -3068,6 +3151,8 @@ def _track_group(
                     for s, p in zip(streams, paths):
                         if s.done and s.error is None and all(s is not x for x in live):
                             _checkpoint_path(p["csv"]).unlink(missing_ok=True)
+            if stop:  # (one that arrives after `stop` was read waits for the next step's checkpoint)
+                boundary.check()
             nxt = []
             for s in live:
                 if not s.done:
@@ -3134,11 +3219,14 @@ def _track_group(
                 if s.replay is not None and t < len(s.replay) and not s.retrack:
                     s.t_replay += now - t_iter
             t_iter = now
+        boundary.__exit__()
         t_track = time.perf_counter() - t_track0
         _keep_final(state, live, layout, list(range(len(live))))
     except BaseException:
+        boundary.restore()
         for s in batch:
             _abandon(s)
+        boundary.check()  # (a signal that waited: its interruption, over the error)
         raise
     summaries: list[VideoSummary | None] = []
     finished = 0

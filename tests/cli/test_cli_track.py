@@ -1574,7 +1574,9 @@ def test_a_video_whose_face_appears_later_is_tracked_from_that_frame(clip, tmp_p
 
 def test_a_video_whose_face_appears_later_resumes_as_uninterrupted(clip, tmp_path, monkeypatch):
     """Interrupted before and after its first face, such a video resumes: its rows before the face kept, its
-    tracked rows replayed from the first face on, the rest as the uninterrupted run's."""
+    tracked rows replayed from the first face on, the rest as the uninterrupted run's; its sidecar's
+    ``detector_calls`` the uninterrupted run's too, the interrupted run's search for the face counted (it was not:
+    the resumed run does not search again, and counted 0 for it)."""
     video, lm, gt = clip
     n = 2
 
@@ -1594,6 +1596,9 @@ def test_a_video_whose_face_appears_later_resumes_as_uninterrupted(clip, tmp_pat
         assert rows.shape == ref.shape
         np.testing.assert_allclose(rows, ref, rtol=1e-5, atol=1e-4, equal_nan=True)
         assert read_video(output_paths(out, "late")["overlay"]).shape[0] == T + n
+        side, uninterrupted = (json.loads((d / "late.json").read_text()) for d in (out, tmp_path / "ref"))
+        assert uninterrupted["detector_calls"] == n + 1  # (its search: no re-detection, no recovery)
+        assert side["detector_calls"] == n + 1
 
 
 def test_a_resume_whose_first_face_moved_later_names_that_frame(clip, tmp_path, monkeypatch):
@@ -2562,9 +2567,12 @@ def test_sigterm_after_the_handler_is_restored_finds_the_outputs_complete(clip, 
     video, lm, _ = clip
     real = signal.signal
     seen: list[tuple[list[str], str]] = []
+    outside = signal.getsignal(signal.SIGTERM)
 
     def restore(signum, handler):
-        if signum == signal.SIGTERM and getattr(handler, "__name__", "") != "handler":  # (the restore, not main's own)
+        # (main's restore of the handler it found: not main's own, nor the job's step-boundary handler and its
+        # restore of main's)
+        if signum == signal.SIGTERM and handler == outside:
             seen.append((sorted(p.name for p in tmp_path.iterdir()), capsys.readouterr().out))
         return real(signum, handler)
 

@@ -47,6 +47,17 @@ def clips(tmp_path_factory):
     return out
 
 
+@pytest.fixture(scope="module")
+def batch_ref(clips, tmp_path_factory) -> Path:
+    """The folder of both clips' outputs, tracked uninterrupted as one batch (read only: shared by the tests that
+    compare a resumed batch with it)."""
+    ref = tmp_path_factory.mktemp("ref")
+    with pytest.MonkeyPatch.context() as m:  # (as every test here tracks: the checkpoints change no output)
+        m.setattr(torchface.job, "CHECKPOINT_EVERY", EVERY)
+        track_videos([v for v, _ in clips], _config(ref, clips))
+    return ref
+
+
 @pytest.fixture(autouse=True)
 def every(monkeypatch):
     monkeypatch.setattr(torchface.job, "CHECKPOINT_EVERY", EVERY)
@@ -98,7 +109,10 @@ def test_resume_from_a_checkpoint_is_the_uninterrupted_run(clips, tmp_path, monk
     video of its batch (alone: with ``--meshes``, its meshes compared too), with or without ``--smooth``, or with a
     detector re-detecting every other frame (one made after the checkpoint's row): resumed from the checkpoint at 8
     rows (rows 9 and 10 cut off and tracked again) on another CPU thread count than the interrupted run's, the CSVs,
-    overlays and normalised videos are the uninterrupted run's, byte for byte; the sidecar says so (and both counts) (``resumed.checkpoint``) and no checkpoint is left. (From the CSV's
+    overlays and normalised videos are the uninterrupted run's, byte for byte; the sidecar says so (and both thread
+    counts) (``resumed.checkpoint``) and no checkpoint is left; its detector counts (``detector_calls``,
+    ``redetections``, ``restart_failures``) are the whole video's, the uninterrupted run's (they were this run's
+    alone: those of the rows after the checkpoint). (From the CSV's
     last row, without the template mosaic, the pose filter's state and the rest, the resumed rows parted from the
     uninterrupted ones: byte-identical before this change only where rows < max_frames were tracked again. The
     detector's re-fit left the state's cached angles untied from its parameters, which the join refused, and the
@@ -143,7 +157,7 @@ def test_resume_from_a_checkpoint_is_the_uninterrupted_run(clips, tmp_path, monk
         assert side["resumed"]["threads"] == {"checkpoint": threads, "now": other}
         assert not (out / f"{n}.state.partial").exists()
         for d in (side, ref):  # (the rest of the sidecar, its start and final shape included, is the same too)
-            for key in ("resumed", "timings_s", "outputs", "redetections", "detector_calls"):
+            for key in ("resumed", "timings_s", "outputs"):  # (the detector's counts: the whole video's)
                 del d[key]
             del d["config"]["resume"]
         assert side == ref
@@ -186,11 +200,10 @@ def test_a_checkpoint_that_does_not_match_is_refused_with_a_warning(clips, tmp_p
     assert _resumed_without_its_checkpoint(clips, out, f"{ck}: not used (")["rows"] == STOP
 
 
-def test_a_batch_resumed_in_smaller_batches_goes_on_from_its_checkpoints(clips, tmp_path):
+def test_a_batch_resumed_in_smaller_batches_goes_on_from_its_checkpoints(clips, batch_ref, tmp_path):
     """A batch's videos resumed with a smaller ``max_batch`` are tracked in parts of their batch, each part's states
     joined alone: every video goes on from its checkpoint, without a warning, its rows those of the uninterrupted
     run to float rounding (the batch's composition: not to the byte)."""
-    track_videos([v for v, _ in clips], _config(tmp_path / "ref", clips))
     out = tmp_path / "out"
     _interrupted(clips, out)
     with warnings.catch_warnings():
@@ -198,7 +211,7 @@ def test_a_batch_resumed_in_smaller_batches_goes_on_from_its_checkpoints(clips, 
         track_videos([v for v, _ in clips], _config(out, clips, resume=True, max_batch=1))
     for v, _ in clips:
         assert json.loads((out / f"{v.stem}.json").read_text())["resumed"]["checkpoint"] == "split"
-        ref, got = (read_track_csv(d / f"{v.stem}.csv")[1] for d in (tmp_path / "ref", out))
+        ref, got = (read_track_csv(d / f"{v.stem}.csv")[1] for d in (batch_ref, out))
         np.testing.assert_allclose(got, ref, rtol=0, atol=1e-4, err_msg=v.stem)
 
 
@@ -339,7 +352,8 @@ def test_a_fresh_run_removes_an_earlier_runs_checkpoints(clips, tmp_path):
     assert not (out / "a.state.partial").exists() and not (out / "a.state.partial.tmp").exists()
 
 
-def test_a_video_that_stops_while_its_rows_are_replayed_leaves_its_batchs_state(clips, tmp_path, monkeypatch):
+def test_a_video_that_stops_while_its_rows_are_replayed_leaves_its_batchs_state(clips, batch_ref, tmp_path,
+                                                                              monkeypatch):  # fmt: skip
     """Two videos resumed from their checkpoints of one batch, the first of which cannot be read on (an
     ``InputError`` at its 4th frame, while its rows are replayed: the others go on): the second goes on from its own
     part of the batch's state, its rows those of the uninterrupted run to float rounding (tracked alone). (The
@@ -347,7 +361,6 @@ def test_a_video_that_stops_while_its_rows_are_replayed_leaves_its_batchs_state(
     went on from the first's state.)"""
     from torchface.io import InputError
 
-    track_videos([v for v, _ in clips], _config(tmp_path / "ref", clips))
     out = tmp_path / "out"
     _interrupted(clips, out)
     read = torchface.job._next_frame
@@ -366,7 +379,7 @@ def test_a_video_that_stops_while_its_rows_are_replayed_leaves_its_batchs_state(
             pass
     assert not (out / "a.json").exists()
     assert json.loads((out / "b.json").read_text())["resumed"]["checkpoint"] == "split"
-    ref, got = (read_track_csv(d / "b.csv")[1] for d in (tmp_path / "ref", out))
+    ref, got = (read_track_csv(d / "b.csv")[1] for d in (batch_ref, out))
     np.testing.assert_allclose(got, ref, rtol=0, atol=1e-4)
 
 
@@ -516,3 +529,163 @@ def test_a_checkpoint_of_more_rows_than_the_csv_holds_as_it_opens_is_not_used(cl
     monkeypatch.setattr(torchface.job, "_load_checkpoint", more)
     resumed = _resumed_without_its_checkpoint(clips, out, f"{out / 'a.state.partial'}: not used (it is of row 99")
     assert resumed["rows"] == STOP
+
+
+def _signalling_step(monkeypatch, at: int, signals: list[int]) -> list[int]:
+    """Make ``torchface.job.managed_step`` send this process ``signals`` at its call for row ``at`` (mid-step, before
+    that step's work), as Ctrl-C or ``kill`` would; returns the list of the rows it is called for."""
+    import os
+
+    real, calls = torchface.job.managed_step, []
+
+    def step(*args, **kwargs):
+        calls.append(len(calls) + 1)
+        if calls[-1] == at:
+            for signum in signals:
+                os.kill(os.getpid(), signum)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(torchface.job, "managed_step", step)
+    return calls
+
+
+def test_ctrl_c_writes_a_checkpoint_at_the_step_boundary_and_resumes_tracking_nothing_again(
+    clips, batch_ref, tmp_path, monkeypatch
+):
+    """Ctrl-C (SIGINT) mid-step, in a batch of 2: the step goes on to its rows (STOP + 1), the checkpoint of that
+    consistent state is written after them, then KeyboardInterrupt as before (SIGINT's handler given back). The
+    resume tracks no row again (one step: the last row's; it tracked those after the last periodic checkpoint
+    again, here 3 of them) and its outputs are the uninterrupted run's, byte for byte. A second Ctrl-C while the
+    first waits interrupts at once (a video alone, at its row 5): that step's row not written, the last periodic
+    checkpoint (4 rows) kept."""
+    import signal
+
+    names = [v.stem for v, _ in clips]
+    for twice, videos, at in ((False, clips, STOP), (True, clips[:1], 5)):
+        out = tmp_path / f"out{int(twice)}"
+        _signalling_step(monkeypatch, at, [signal.SIGINT] * (2 if twice else 1))
+        with pytest.raises(KeyboardInterrupt):
+            track_videos([v for v, _ in videos], _config(out, videos))
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+        rows = at if twice else at + 1
+        for v, _ in videos:
+            assert read_track_csv(out / f"{v.stem}.csv.partial")[1].shape[0] == rows
+            assert torch.load(out / f"{v.stem}.state.partial", weights_only=True)["rows"] == (4 if twice else rows)
+    calls = _signalling_step(monkeypatch, 0, [])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        track_videos([v for v, _ in clips], _config(tmp_path / "out0", clips, resume=True))
+    assert len(calls) == N - (STOP + 1)  # (the step of its last row alone)
+    assert _same_outputs(batch_ref, tmp_path / "out0", names) == []
+    for n in names:
+        assert json.loads((tmp_path / "out0" / f"{n}.json").read_text())["resumed"]["checkpoint"] == "exact"
+
+
+def test_sigterm_in_the_command_line_writes_its_checkpoint_and_exits_143(clips, tmp_path, monkeypatch, capsys):
+    """``torchface track`` (without the online start: checkpoints from its first row) sent SIGTERM mid-step: its
+    SIGTERM handler runs at the step boundary, after the checkpoint of that step's rows; status 143, the rows kept;
+    ``--resume`` tracks none of them again, and its CSV is the uninterrupted run's, byte for byte."""
+    import signal
+
+    from torchface.cli import main
+
+    video, lm = clips[0]
+    stop = 5
+
+    def args(out: Path, *more: str) -> list[str]:
+        return ["track", str(video), "--landmarks", str(lm), "--out", str(out), "--no-online-refine", "--quiet", *more]
+
+    assert main(args(tmp_path / "ref")) == 0
+    before = signal.getsignal(signal.SIGTERM)
+    _signalling_step(monkeypatch, stop, [signal.SIGTERM])
+    assert main(args(tmp_path / "out")) == 143
+    assert signal.getsignal(signal.SIGTERM) is before
+    assert "terminated" in capsys.readouterr().err
+    assert read_track_csv(tmp_path / "out" / "a.csv.partial")[1].shape[0] == stop + 1
+    assert torch.load(tmp_path / "out" / "a.state.partial", weights_only=True)["rows"] == stop + 1
+    calls = _signalling_step(monkeypatch, 0, [])
+    assert main(args(tmp_path / "out", "--resume")) == 0
+    assert len(calls) == N - (stop + 1)
+    assert (tmp_path / "out" / "a.csv").read_bytes() == (tmp_path / "ref" / "a.csv").read_bytes()
+
+
+def test_the_step_boundary_defers_python_handlers_in_the_main_thread_alone():
+    """``_AtStepBoundary``: SIGINT's Python handler waits for ``check`` (no KeyboardInterrupt where the signal
+    arrives), a second signal runs it at once, the handlers are given back as the block ends (a signal that waited
+    runs then), a caller's own handler is what runs, ``SIG_IGN`` is left as it is, and nothing changes outside the
+    main thread (where ``signal.signal`` raises)."""
+    import os
+    import signal
+    import threading
+
+    from torchface.job import _AtStepBoundary
+
+    with _AtStepBoundary() as boundary:
+        assert signal.getsignal(signal.SIGINT) is not signal.default_int_handler
+        os.kill(os.getpid(), signal.SIGINT)
+        assert boundary.pending == signal.SIGINT
+        with pytest.raises(KeyboardInterrupt):
+            boundary.check()
+        boundary.check()  # (nothing waits)
+        with pytest.raises(KeyboardInterrupt):  # a second one: at once
+            os.kill(os.getpid(), signal.SIGINT)
+            os.kill(os.getpid(), signal.SIGINT)
+            for _ in range(100):  # (the handler runs between bytecodes: well before this ends)
+                pass
+        assert boundary.pending is None
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    with pytest.raises(KeyboardInterrupt):  # one that waits as the block ends: run then, the handler given back
+        with _AtStepBoundary():
+            os.kill(os.getpid(), signal.SIGINT)
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    ran = []
+
+    def own(signum, frame):
+        ran.append(signum)
+
+    before = signal.signal(signal.SIGINT, own)
+    try:
+        with _AtStepBoundary() as boundary:
+            os.kill(os.getpid(), signal.SIGINT)
+            assert ran == [] and boundary.pending == signal.SIGINT
+            boundary.check()
+            assert ran == [signal.SIGINT]
+        assert signal.getsignal(signal.SIGINT) is own
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        with _AtStepBoundary():
+            assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGINT, before)
+    seen, failed = [], []
+
+    def in_a_thread():
+        try:
+            with _AtStepBoundary() as b:
+                seen.append((signal.getsignal(signal.SIGINT), b.pending))
+        except BaseException as exc:  # (signal.signal outside the main thread: ValueError)
+            failed.append(exc)
+
+    thread = threading.Thread(target=in_a_thread)
+    thread.start()
+    thread.join()
+    assert failed == [] and seen == [(signal.default_int_handler, None)]
+
+
+def test_a_checkpoints_detector_counts_are_checked_with_its_layout():
+    """The detector counts a checkpoint carries (``stream``'s ``detector_calls``, ``redetections``,
+    ``restart_failures``, which a resume goes on counting from) are part of its layout: missing, or not whole
+    numbers by name, the checkpoint is refused (not used, with a warning) before the resume reads them."""
+    from torchface.job import _check_checkpoint_layout
+
+    stream = {"low_count": 0, "smooth_restart": False, "detection_warned": False, "near": None, "detector_calls": 3,
+              "redetections": 1, "restart_failures": {"OUTSIDE_FRAME": 2}}  # fmt: skip
+    data = {"version": 3, "t": 7, "rows": 8, "start": 0, "row": None, "settings": "{}", "origin": {}, "batch": ["a"],
+            "index": 0, "state": {}, "smooth": None, "first_R": torch.eye(3)[None], "first_t": torch.zeros(1, 3),
+            "stream": stream}  # fmt: skip
+    _check_checkpoint_layout(data)
+    for key, value in (("detector_calls", "3"), ("redetections", None), ("restart_failures", {"OUTSIDE_FRAME": 2.0}),
+                       ("restart_failures", [2])):  # fmt: skip
+        with pytest.raises(ValueError, match="its detector counts are not of their layout"):
+            _check_checkpoint_layout(data | {"stream": stream | {key: value}})
+    with pytest.raises(ValueError, match=r"it lacks stream\.restart_failures"):
+        _check_checkpoint_layout(data | {"stream": {k: v for k, v in stream.items() if k != "restart_failures"}})
