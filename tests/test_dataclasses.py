@@ -313,6 +313,24 @@ def test_number_settings_refuse_nan_infinities_and_strings_naming_them(bad, erro
     assert checked >= 80
 
 
+def test_check_number_reads_its_interval_as_written_and_refuses_an_empty_or_mistyped_one():
+    """``check_number``'s interval (torchface.extending: other packages write their own): its ends open or closed as
+    written, spaces or none, and a closed ``inf`` end takes ``inf``. One that holds no number (``"[1, 0]"``,
+    ``"(0, 0]"``, a NaN bound) refused every value, saying the empty range; a mistyped one was float()'s "could not
+    convert string to float" at a value, and nothing at None. Now both are refused, naming the interval."""
+    from torchface.extending import check_number
+
+    assert [check_number(v, "x", "(0,1]") for v in (1, 0.5)] == [1, 0.5]
+    assert check_number(math.inf, "x", "[0, inf]") == math.inf and check_number(-1, "x", "[-1, -1]") == -1
+    for value, interval in ((0, "(0,1]"), (math.inf, "[0, inf)"), (-math.inf, "(-inf, 0]"), (math.nan, "[-inf, inf]")):
+        with pytest.raises(ValueError, match=r"^x must be "):
+            check_number(value, "x", interval)
+    for interval in ("[1, 0]", "(0, 0]", "[0, 0)", "(nan, 1]", "[0, 1", "0, 1", "[0,,1]", "[0, 1, 2]", "[a, 1]"):
+        for value in (0.5, None):
+            with pytest.raises(ValueError, match=rf"^interval must be .*, got {re.escape(repr(interval))}$"):
+                check_number(value, "x", interval, optional=True)
+
+
 def _choice_fields(cls: type) -> dict[str, type[enum.Enum]]:
     """``{field: enum}`` of the fields of ``cls`` that hold an enum member."""
     names = vars(sys.modules[cls.__module__])
@@ -330,7 +348,8 @@ def test_choice_settings_and_arguments_name_the_member_to_pass_and_where_it_impo
     from torchface.model.candide import AnimationSet, load_candide3
     from torchface.rendering.rasterizer import rasterize_coverage
 
-    verts, faces = torch.tensor([[[0.0, 0.0, 500.0], [10.0, 0.0, 500.0], [0.0, 10.0, 500.0]]]), torch.tensor([[0, 1, 2]])
+    verts = torch.tensor([[[0.0, 0.0, 500.0], [10.0, 0.0, 500.0], [0.0, 10.0, 500.0]]])
+    faces = torch.tensor([[0, 1, 2]])
     calls = [(lambda v: load_candide3(animation=v), "animation", AnimationSet),
              (lambda v: rasterize_coverage(verts, faces, Intrinsics.default(16, 16), backend=v), "backend", Backend)]
     for cls, base in _settings().items():

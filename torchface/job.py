@@ -238,7 +238,9 @@ class JobConfig:
         tracker: :class:`TrackerConfig` (its ``template`` field sets template management: the dissimilarity
             confidence written as ``confidence``, the mosaic, loss and recovery).
         redetect_after: consecutive low-confidence frames before asking the detector again (0 = never).
-        redetect_below: the (dissimilarity) confidence threshold for that.
+        redetect_below: the (dissimilarity) confidence threshold for that, any finite number: confidences lie in
+            [0, 1], so one above 1 counts every frame low (a re-detection every ``redetect_after`` frames) and one
+            at most 0 none that has a confidence.
         lookahead: start each video from the look-ahead fit (:mod:`torchface.tracker.lookahead`: the first
             frame's pose, expression and held shape units refined against the frames where the head turns 10
             degrees to each side, one side being enough),

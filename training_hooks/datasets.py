@@ -393,6 +393,13 @@ def _remove_stale_claims(folder: str, owner: tuple[str, int, int, int]) -> list[
                     starts[pid] = unknown
             if starts[pid] in (unknown, int(match[4])):  # (its maker alive, or not known)
                 continue
+            try:  # (read again: the start kept was read before this folder was listed, and a process given the pid
+                # since then, which read its own start before making the folder, lives)
+                starts[pid] = _process_start(pid)
+            except (OSError, ValueError, IndexError):
+                starts[pid] = unknown
+            if starts[pid] in (unknown, int(match[4])):
+                continue
             try:
                 info = entry.stat(follow_symlinks=False)
             except OSError:

@@ -213,8 +213,10 @@ def test_exception_intrinsics_and_near():
     verts, faces = random_soup(0, 1, 2)
     with pytest.raises(TypeError):
         rasterize(verts, faces, (32, 24))
-    with pytest.raises(ValueError):
-        rasterize(verts, faces, CAM, near=0.0)
+    for near in (0.0, float("inf"), float("nan")):  # (inf passed "> 0": every triangle cut)
+        for raster in (rasterize, rasterize_coverage):
+            with pytest.raises(ValueError, match=r"^near must be a finite number > 0 \(millimetres\), got"):
+                raster(verts, faces, CAM, near=near)
 
 
 # ----------------------------------------------------------------------------------------- fast vs reference

@@ -244,5 +244,6 @@ def test_points_visible_exceptions():
         points_visible(pts, ids.double(), frag, CAM)
     with pytest.raises(ValueError):
         points_visible(pts, ids, frag, Intrinsics.default(32, 24))
-    with pytest.raises(ValueError):
-        points_visible(pts, ids, frag, CAM, depth_tolerance=-0.1)
+    for tolerance in (-0.1, float("inf"), float("nan")):  # (inf passed ">= 0")
+        with pytest.raises(ValueError, match=r"^depth_tolerance must be a finite number >= 0 \(a fraction of"):
+            points_visible(pts, ids, frag, CAM, depth_tolerance=tolerance)

@@ -128,9 +128,9 @@ def test_clip_spec_refuses_values_that_render_nan_or_nothing():
               anim=anim, ambient=0.4, light_direction=(0, 0, -1), light_intensity=0.5)  # fmt: skip
     nan = float("nan")
     for name, bad, match in [
-        ("ambient", nan, "ambient must be finite and >= 0, got nan"),
-        ("light_intensity", -1.0, "light_intensity must be finite and >= 0"),
-        ("distance_mm", float("inf"), "distance_mm must be positive and finite"),
+        ("ambient", nan, "^ambient must be a finite number >= 0, got nan$"),
+        ("light_intensity", -1.0, "^light_intensity must be a finite number >= 0, got -1.0$"),
+        ("distance_mm", float("inf"), "^distance_mm must be a finite number > 0, got inf$"),
         ("ypr_deg", (nan, 0.0, 0.0), r"ypr_deg must be three finite numbers"),
         ("translation_mm", (0.0, 0.0), r"translation_mm must be three finite numbers"),
         ("light_direction", (0, 0, 0), "light_direction must be a non-zero direction"),

@@ -176,6 +176,9 @@ def test_lk_bad_shapes_raise():
         inverse_compositional_lk(ref, ref, centres, 9, image_mask=torch.ones(2, 1, 16, 16))
     with pytest.raises(TypeError, match="centres"):
         inverse_compositional_lk(ref, ref, [[1.0, 2.0]], 9)
+    for tolerance in (0.0, float("inf"), float("nan")):  # (inf passed "> 0": every patch converged at once)
+        with pytest.raises(ValueError, match=r"^tolerance must be a finite number > 0 \(pixels\), got"):
+            inverse_compositional_lk(ref, ref, centres, 9, tolerance=tolerance)
 
 
 # ---------------------------------------------------------------- dissimilarity and confidence

@@ -104,8 +104,11 @@ def test_bad_inputs_are_refused() -> None:
         one_euro_step(torch.zeros(3, 3), state, DT, cfg)
     with pytest.raises(TypeError, match="OneEuroConfig"):
         one_euro_step(torch.zeros(2, 3), None, DT, SmoothingConfig())  # type: ignore[arg-type]
-    with pytest.raises(ValueError, match="fps"):
-        ResultSmoother(fps=0.0)
+    for fps in (0.0, math.inf, math.nan):  # (refused before too: now in OneEuroConfig's words, a str a TypeError)
+        with pytest.raises(ValueError, match=r"^fps must be a finite number > 0 \(frames per second\) or None, got"):
+            ResultSmoother(fps=fps)
+    with pytest.raises(TypeError, match=r"^fps must be a real number or None, got str '25'$"):
+        ResultSmoother(fps="25")
     with pytest.raises(ValueError, match="face model"):
         ResultSmoother(SmoothingConfig(expression=OneEuroConfig()), fps=FPS)
 

@@ -489,6 +489,11 @@ def test_results_become_the_csvs_rows_as_the_docs_say(clip):
         result_rows(results, [0, 1], 25.0)
     with pytest.raises(ValueError, match=r"^frame_indices must give one frame index per stream \(2\), got 1$"):
         result_rows(r, [1], 25.0)
+    for fps in (0.0, float("inf"), float("nan")):  # (inf passed "> 0": every timestamp 0)
+        with pytest.raises(ValueError, match=r"^fps must be a finite number > 0 \(frames per second\), got"):
+            result_rows(r, [0, 1], fps)
+    with pytest.raises(TypeError, match=r"^fps must be a real number, got str '25'$"):
+        result_rows(r, [0, 1], "25")
 
 
 def test_landmarks_as_row_and_column_fail_saying_to_give_x_and_y(clip):

@@ -503,7 +503,6 @@ def test_a_deep_copy_is_an_independent_dataset_whose_workers_share_its_state(cli
     assert data.epoch == 7
 
 
-
 @pytest.mark.skipif(not os.path.isdir("/proc/self"), reason="a process's start is read from Linux's /proc")
 def test_a_killed_processs_dataset_folder_is_removed_by_the_next_dataset(tmp_path, monkeypatch):
     """A dataset's private folder of once-only warning markers (``torchface-dataset-*``, in the temporary folder) is
@@ -556,6 +555,24 @@ def test_a_killed_processs_dataset_folder_is_removed_by_the_next_dataset(tmp_pat
         live.wait(30)
     monkeypatch.setattr(datasets, "_remove_stale_claims", lambda *args: 1 / 0)
     assert os.path.isdir(datasets._Claims().folder)  # (its cleanup failed: the dataset's folder made all the same)
+
+
+@pytest.mark.skipif(not hasattr(os, "geteuid"), reason="folders are told apart by their owner (POSIX)")
+def test_a_folder_of_a_process_given_a_dead_makers_pid_during_a_cleanup_is_kept(tmp_path, monkeypatch):
+    """The cleanup reads a pid's start once per scan of the folder; a folder listed after that read may be that of
+    a process given the pid since (which read its own start before it made the folder): it was removed with the dead
+    maker's, a live dataset's markers gone. Now a start that says "gone" is read again before a folder is removed."""
+    from training_hooks import datasets
+
+    boot, namespace, pid = "ab" * 16, 4026531836, 4321
+    old, new = (f"torchface-dataset-{boot}-{namespace}-{pid}-{start}-x1" for start in (100, 900))
+    for folder in (old, new):
+        (tmp_path / folder).mkdir()
+    reads = itertools.chain([None], itertools.repeat(900))  # (no such pid at the first read, then one started at 900)
+    monkeypatch.setattr(datasets, "_process_start", lambda _: next(reads))
+    assert datasets._remove_stale_claims(str(tmp_path), (boot, namespace, 1, 1)) == [old]
+    assert [p.name for p in tmp_path.iterdir()] == [new]
+
 
 # --------------------------------------------------------------------------------------------- exceptions
 

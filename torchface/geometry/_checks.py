@@ -141,7 +141,7 @@ def check_number(value: object, name: str, interval: str, optional: bool = False
 
     Raises:
         TypeError: ``value`` is not a real number (or None with ``optional``).
-        ValueError: it lies outside ``interval``.
+        ValueError: it lies outside ``interval``; or ``interval`` is not one, or an empty one (``"[1, 0]"``).
 
     Example:
         >>> check_number(0.5, "texture_blend", "(0, 1]"), check_number(None, "focal", "(0, inf)", True)
@@ -151,25 +151,37 @@ def check_number(value: object, name: str, interval: str, optional: bool = False
             ...
         ValueError: search_step_px must be a finite number > 0 (pixels), got inf
     """
+    low, high, low_open, high_open = _interval(interval)  # (first: a mistyped interval is found with None too)
     if optional and value is None:
         return None
     number = _check_real(value, name, " or None" if optional else "")
-    low, high, low_open, high_open = _interval(interval)
     above = number > low if low_open else number >= low
     below = number < high if high_open else number <= high
     if not (above and below):  # (NaN: both False)
         unit = f" ({unit})" if unit else ""
-        raise ValueError(f"{name} must be {_interval_words(interval)}{unit}{' or None' if optional else ''}, got {value!r}")
+        none = " or None" if optional else ""
+        raise ValueError(f"{name} must be {_interval_words(interval)}{unit}{none}, got {value!r}")
     return number
 
 
 @functools.lru_cache(maxsize=None)
 def _interval(interval: str) -> tuple[float, float, bool, bool]:
-    """``(low, high, low_open, high_open)`` of an interval written ``"[a, b)"`` (``inf`` and ``-inf`` allowed)."""
-    match = re.fullmatch(r"([\[(])\s*(\S+)\s*,\s*(\S+)\s*([\])])", interval)
-    if match is None:
-        raise ValueError(f"not an interval: {interval!r}")
-    return float(match[2]), float(match[3]), match[1] == "(", match[4] == ")"
+    """``(low, high, low_open, high_open)`` of an interval written ``"[a, b)"`` (``inf`` and ``-inf`` allowed).
+
+    Raises:
+        ValueError: ``interval`` is not so written, or holds no number (``"[1, 0]"``, ``"(0, 0]"``, a NaN bound:
+            every value was refused, the message saying the empty range).
+    """
+    match = re.fullmatch(r"([\[(])\s*([^\s,]+)\s*,\s*([^\s,]+)\s*([\])])", interval)
+    try:
+        low, high = (float(match[2]), float(match[3])) if match is not None else (math.nan, math.nan)
+    except ValueError:
+        low = high = math.nan
+    low_open, high_open = match is not None and match[1] == "(", match is not None and match[4] == ")"
+    if not (low < high or (low == high and not (low_open or high_open))):  # (NaN: False)
+        raise ValueError(f'interval must be a non-empty interval of numbers written "[a, b]", "(a, b)", "[a, b)" or '
+                         f'"(a, b]" (a or b inf), got {interval!r}')
+    return low, high, low_open, high_open
 
 
 def _interval_words(interval: str) -> str:
@@ -207,7 +219,8 @@ def check_choice(value: object, name: str, kind: type[E]) -> E:
     """
     if isinstance(value, kind):
         return value
-    named = [m for m in kind if isinstance(value, str) and value.strip().lower() in (str(m.value).lower(), m.name.lower())]
+    spelled = value.strip().lower() if isinstance(value, str) else None
+    named = [m for m in kind if spelled in (str(m.value).lower(), m.name.lower())]
     members = " or ".join(f"{kind.__name__}.{m.name}" for m in (named[:1] or list(kind)))
     article = "an" if kind.__name__[0] in "AEIOU" else "a"
     raise TypeError(f"{name} must be {article} {kind.__name__}, got {type(value).__name__} {value!r} (pass {members}, "

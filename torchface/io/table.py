@@ -61,6 +61,7 @@ import torch
 from torch import Tensor
 
 from torchface._names import name_tuple
+from torchface.geometry._checks import check_number
 from torchface.geometry.so3 import matrix_to_euler
 from torchface.io.errors import InputError, OutputError
 
@@ -189,8 +190,7 @@ def result_rows(result, frame_indices: Tensor | np.ndarray | Sequence[int], fps:
     if not isinstance(getattr(result, "rotation", None), Tensor):  # (a list of results: an AttributeError)
         raise TypeError(f"result must be one step's TrackResult, got {type(result).__name__} (rows of several: "
                         "np.concatenate([result_rows(r, ...) for r in results]))")  # fmt: skip
-    if not fps > 0:
-        raise ValueError(f"fps must be positive, got {fps}")
+    fps = check_number(fps, "fps", "(0, inf)", unit="frames per second")  # (inf passed "> 0": every timestamp 0)
     frames = torch.as_tensor(np.asarray(frame_indices), dtype=torch.float64).reshape(-1, 1)
     R = result.rotation.detach().to("cpu", torch.float64)
     B = R.shape[0]

@@ -650,8 +650,8 @@ def _cover(
     _check_mesh(verts_cam, faces, "verts_cam")
     if not isinstance(intrinsics, Intrinsics):
         raise TypeError(f"intrinsics must be an Intrinsics, got {type(intrinsics).__name__}")
-    if not near > 0:
-        raise ValueError(f"near must be positive (millimetres), got {near}")
+    if not 0 < near < math.inf:  # (inf passed "> 0": every triangle cut, an empty coverage; check_number's words)
+        raise ValueError(f"near must be a finite number > 0 (millimetres), got {near}")
     B, F = verts_cam.shape[0], faces.shape[0]
     H, W = intrinsics.height, intrinsics.width
     device, dtype = verts_cam.device, verts_cam.dtype

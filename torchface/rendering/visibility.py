@@ -8,6 +8,8 @@ Winding: ``n = (v1 - v0) x (v2 - v0)`` points out of the surface (see :mod:`torc
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor
 
@@ -165,8 +167,9 @@ def points_visible(
             f"fragments must be (B, H, W) = ({B}, {H}, {W}) to match points_cam and intrinsics, "
             f"got {tuple(fragments.pix_to_face.shape)}"
         )
-    if not depth_tolerance >= 0:
-        raise ValueError(f"depth_tolerance must be non-negative, got {depth_tolerance}")
+    if not 0 <= depth_tolerance < math.inf:  # (inf passed ">= 0", as normalised_face's: check_number's words)
+        raise ValueError(f"depth_tolerance must be a finite number >= 0 (a fraction of the depth), got "
+                         f"{depth_tolerance}")
 
     pts = points_cam.detach()
     if isinstance(fragments, Coverage):

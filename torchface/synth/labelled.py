@@ -39,7 +39,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from torchface.geometry._checks import check_bool, check_int, check_real, check_reals
+from torchface.geometry._checks import check_bool, check_int, check_number, check_reals
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.projection import project_points
 from torchface.geometry.so3 import euler_to_matrix
@@ -258,20 +258,15 @@ class ClipSpec:
         for name in ("num_frames", "width", "height", "background_seed"):  # (2.5 frames failed in linspace)
             object.__setattr__(self, name, check_int(getattr(self, name), name))
         object.__setattr__(self, "easing", check_bool(self.easing, "easing"))  # "no" eased
-        for name in ("distance_mm", "ambient", "light_intensity"):
-            object.__setattr__(self, name, check_real(getattr(self, name), name))
+        # (NaN was taken: a NaN ambient rendered NaN frames, a NaN pose a clip whose labels were NaN)
+        for name, interval in (("distance_mm", "(0, inf)"), ("ambient", "[0, inf)"), ("light_intensity", "[0, inf)")):
+            object.__setattr__(self, name, check_number(getattr(self, name), name, interval))
         if self.num_frames < 2:
             raise ValueError(f"num_frames must be >= 2 (a neutral first frame and a target), got {self.num_frames}")
         if self.width < 16 or self.height < 16:
             raise ValueError(f"frames must be at least 16x16, got {self.width}x{self.height}")
         if not isinstance(self.anim, Tensor) or self.anim.dim() != 1:
             raise ValueError(f"anim must be a (A,) tensor, got {getattr(self.anim, 'shape', type(self.anim).__name__)}")
-        if not (self.distance_mm > 0 and math.isfinite(self.distance_mm)):
-            raise ValueError(f"distance_mm must be positive and finite, got {self.distance_mm}")
-        # (NaN was taken: a NaN ambient rendered NaN frames, a NaN pose a clip whose labels were NaN)
-        for name in ("ambient", "light_intensity"):
-            if not (getattr(self, name) >= 0 and math.isfinite(getattr(self, name))):
-                raise ValueError(f"{name} must be finite and >= 0, got {getattr(self, name)}")
         for name in ("ypr_deg", "translation_mm", "light_direction"):
             value = getattr(self, name)
             try:

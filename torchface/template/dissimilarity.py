@@ -52,6 +52,7 @@ face.
 from __future__ import annotations
 
 import functools
+import math
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -239,8 +240,8 @@ def inverse_compositional_lk(
         raise ValueError(f"centres must be (B, K, 2) with B={reference.shape[0]}, got {tuple(centres.shape)}")
     patch_size = check_int(patch_size, "patch_size", 3)
     iterations = check_int(iterations, "iterations", 1)
-    if not tolerance > 0:
-        raise ValueError(f"tolerance must be positive, got {tolerance}")
+    if not 0 < tolerance < math.inf:  # (inf passed "> 0": every patch converged at its first update, as the config's)
+        raise ValueError(f"tolerance must be a finite number > 0 (pixels), got {tolerance}")
     if max_displacement is not None and not max_displacement > 0:
         raise ValueError(f"max_displacement must be positive or None, got {max_displacement}")
     dtype = torch.promote_types(reference.dtype, images.dtype)

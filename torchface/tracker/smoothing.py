@@ -54,7 +54,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from torchface.geometry._checks import check_number, check_real
+from torchface.geometry._checks import check_number
 from torchface.geometry.so3 import axis_angle_to_matrix, matrix_to_axis_angle, matrix_to_euler
 from torchface.model.face_model import FaceModel
 from torchface.tracker.step import TrackerState, TrackResult
@@ -569,10 +569,7 @@ class ResultSmoother:
         config = SmoothingConfig() if config is None else config
         if not isinstance(config, SmoothingConfig):
             raise TypeError(f"config must be a SmoothingConfig, got {type(config).__name__}")
-        if fps is not None:
-            fps = check_real(fps, "fps")
-            if not (math.isfinite(fps) and fps > 0):
-                raise ValueError(f"fps must be a positive, finite frame rate in Hz, got {fps}")
+        fps = check_number(fps, "fps", "(0, inf)", optional=True, unit="frames per second")  # (OneEuroConfig's rule)
         if model is not None and not isinstance(model, FaceModel):
             raise TypeError(f"model must be a FaceModel or None, got {type(model).__name__}")
         if config.expression is not None and model is None:
