@@ -110,6 +110,8 @@ def test_from_matrix_reads_opencvs_calibration_matrix_and_refuses_what_no_camera
                         r"calibration matrix \(cx, cy = 321, 239 in its last row\)\? Pass K.T$"),
         (np.array(K) * 2, r"^matrix's last row .*got \(0, 0, 2\): a matrix scaled by 2\? Pass K / K\[2, 2\]$"),
         (np.hstack([K, [[0.0], [0.0], [0.0]]]), r"^matrix must be 3x3, got shape \(3, 4\) \(a 3x4 projection matrix"),
+        (torch.tensor(K)[None], r"^matrix must be 3x3, got shape \(1, 3, 3\) \(a batch of matrices\? An Intrinsics is "
+                                r"one camera"),
         ([[600.0, 2.0, 321.0], [0.0, 590.0, 239.0], [0.0, 0.0, 1.0]], r"^matrix must have no skew .*got K\[0, 1\] = 2"),
         ([[600.0, 0.0, float("nan")], [0.0, 590.0, 239.0], [0.0, 0.0, 1.0]], "^matrix must be finite"),
     ]

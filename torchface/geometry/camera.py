@@ -115,6 +115,9 @@ class Intrinsics:
         if tuple(K.shape) != (3, 3):
             hint = (" (a 3x4 projection matrix K [R | t]? Its left 3x3 block is K R, not K: decompose it, e.g. "
                     "cv2.decomposeProjectionMatrix)" if tuple(K.shape) == (3, 4) else "")  # fmt: skip
+            if K.dim() == 3 and tuple(K.shape[1:]) == (3, 3):  # (a batch's: one Intrinsics is one camera)
+                hint = (" (a batch of matrices? An Intrinsics is one camera, which the tracker's whole batch shares: "
+                        "from_matrix(K[b], ...) for a stream's)")  # fmt: skip
             raise ValueError(f"matrix must be 3x3, got shape {tuple(K.shape)}{hint}")
         v = K.detach().to("cpu", torch.float64)
         if not bool(torch.isfinite(v).all()):
