@@ -1309,7 +1309,6 @@ class _AtStepBoundary:
         self._handlers: dict[int, Callable[[int, Any], Any]] = {}  # the handlers it runs, by signal
         self._installed = False
         self.pending: int | None = None  # the signal that waits for the step boundary
-        self._frame: Any = None  # the frame it arrived in (its handler's second argument, as Python gives it)
 
     def __enter__(self) -> "_AtStepBoundary":
         if threading.current_thread() is not threading.main_thread():
@@ -1329,9 +1328,9 @@ class _AtStepBoundary:
 
     def _defer(self, signum: int, frame: Any) -> None:
         if self.pending is None:
-            self.pending, self._frame = signum, frame
+            self.pending = signum
             return
-        self.pending = self._frame = None  # a second one: its handler at once, mid-step (no checkpoint of that state)
+        self.pending = None  # a second one: its handler at once, mid-step (no checkpoint of that state)
         self._handlers[signum](signum, frame)
 
     def restore(self) -> None:
@@ -1343,13 +1342,15 @@ class _AtStepBoundary:
 
     def check(self, error: BaseException | None = None) -> None:
         """Run the handler of the signal that waits, if any (the step's rows and checkpoints written), with the
-        frame the signal arrived in. ``error``: the exception the loop stopped with meanwhile (a CSV or the
-        checkpoint that could not be written), which the handler's interruption replaces: kept as its ``error``
-        attribute, which the command line says (it was lost from its output: "interrupted", status 130)."""
+        frame it runs from as its second argument (the loop's, where the interruption is raised; not the one the
+        signal arrived in, whose locals, a step's tensors, would be held until then). ``error``: the exception the
+        loop stopped with meanwhile (a CSV or the checkpoint that could not be written), which the handler's
+        interruption replaces: kept as its ``error`` attribute, which the command line says (it was lost from its
+        output: "interrupted", status 130)."""
         if self.pending is not None:
-            signum, frame, self.pending, self._frame = self.pending, self._frame, None, None
+            signum, self.pending = self.pending, None
             try:
-                self._handlers[signum](signum, frame)
+                self._handlers[signum](signum, sys._getframe(1))
             except BaseException as interruption:
                 if isinstance(error, Exception) and interruption is not error:
                     interruption.error = error  # type: ignore[attr-defined]

@@ -620,7 +620,7 @@ def test_sigterm_in_the_command_line_writes_its_checkpoint_and_exits_143(clips, 
 def test_the_step_boundary_defers_python_handlers_in_the_main_thread_alone():
     """``_AtStepBoundary``: SIGINT's Python handler waits for ``check`` (no KeyboardInterrupt where the signal
     arrives), a second signal runs it at once, the handlers are given back as the block ends (a signal that waited
-    runs then), a caller's own handler is what runs (with the frame the signal arrived in), ``SIG_IGN`` is left as it
+    runs then), a caller's own handler is what runs (with the boundary's frame), ``SIG_IGN`` is left as it
     is, a nested block runs the handler itself, an error passed to ``check`` is the interruption's ``error``, and
     nothing changes outside the main thread (where ``signal.signal`` raises)."""
     import os
@@ -660,6 +660,9 @@ def test_the_step_boundary_defers_python_handlers_in_the_main_thread_alone():
         for _ in range(100):  # (the deferring handler runs here, in this frame)
             pass
 
+    def boundary_check(boundary):
+        boundary.check()
+
     before = signal.signal(signal.SIGINT, own)
     try:
         with _AtStepBoundary() as boundary:
@@ -669,10 +672,10 @@ def test_the_step_boundary_defers_python_handlers_in_the_main_thread_alone():
             assert ran == [signal.SIGINT]
         assert signal.getsignal(signal.SIGINT) is own
         signal.signal(signal.SIGINT, own_frame)
-        with _AtStepBoundary() as boundary:  # its handler gets the frame the signal arrived in (as Python gives it)
-            mid_step()
-            boundary.check()
-        assert ran[1:] == [(signal.SIGINT, "mid_step")]  # (it was check's caller's: this test's)
+        with _AtStepBoundary() as boundary:  # its handler gets the frame it runs from (check's caller's), not the
+            mid_step()  # one the signal arrived in (its locals, a step's tensors, are not held until the boundary)
+            boundary_check(boundary)
+        assert ran[1:] == [(signal.SIGINT, "boundary_check")]
         signal.signal(signal.SIGINT, signal.SIG_IGN)
         with _AtStepBoundary():
             assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
