@@ -669,11 +669,16 @@ def _run(args: argparse.Namespace) -> int:
         return EXIT_USAGE
     except KeyboardInterrupt as exc:
         how = "terminated" if isinstance(exc, _Terminated) else "interrupted"
+        error = getattr(exc, "error", None)  # (the job's loop stopped by an error while the signal waited)
+        said = ""
+        if isinstance(error, Exception):
+            said = " ".join(str(error).split()) or type(error).__name__
+            said = f"\ntorchface: error: {said}"
         if args.command == "track":  # (the job says what it leaves; interrupted outside it, before it wrote)
             then = getattr(exc, "kept", None) or "nothing was written: run the same command again"
         else:
             then = "run it again to start over"
-        _say(f"\ntorchface: {how}; {then}")
+        _say(f"{said}\ntorchface: {how}; {then}")
         return EXIT_TERMINATED if isinstance(exc, _Terminated) else EXIT_INTERRUPTED
 
 

@@ -1315,6 +1315,11 @@ class _AtStepBoundary:
             return self
         for signum in _DEFERRED_SIGNALS:
             previous = signal.getsignal(signum)
+            outer = getattr(previous, "__self__", None)
+            if isinstance(outer, _AtStepBoundary):  # (a track_videos within another's loop: from its progress
+                # callback, or a handler it runs): the handler itself, not the outer loop's deferral, which would
+                # only mark the outer loop and let this one track on to its end
+                previous = outer._handlers[signum]
             if callable(previous):  # (not SIG_IGN, SIG_DFL or None: a handler set outside Python)
                 self._handlers[signum] = previous
                 signal.signal(signum, self._defer)
@@ -1335,11 +1340,21 @@ class _AtStepBoundary:
             for signum, handler in self._handlers.items():
                 signal.signal(signum, handler)
 
-    def check(self) -> None:
-        """Run the handler of the signal that waits, if any (the step's rows and checkpoints written)."""
+    def check(self, error: BaseException | None = None) -> None:
+        """Run the handler of the signal that waits, if any (the step's rows and checkpoints written), with the
+        frame it runs from as its second argument (the loop's, where the interruption is raised; not the one the
+        signal arrived in, whose locals, a step's tensors, would be held until then). ``error``: the exception the
+        loop stopped with meanwhile (a CSV or the checkpoint that could not be written), which the handler's
+        interruption replaces: kept as its ``error`` attribute, which the command line says (it was lost from its
+        output: "interrupted", status 130)."""
         if self.pending is not None:
             signum, self.pending = self.pending, None
-            self._handlers[signum](signum, sys._getframe(1))
+            try:
+                self._handlers[signum](signum, sys._getframe(1))
+            except BaseException as interruption:
+                if isinstance(error, Exception) and interruption is not error:
+                    interruption.error = error  # type: ignore[attr-defined]
+                raise
 
     def __exit__(self, *exc: object) -> None:
         self.restore()
@@ -1442,7 +1457,9 @@ def _load_checkpoint(s: _Stream, csv: Path, config: JobConfig, model: FaceModel)
     try:
         data = torch.load(path, map_location=model.device, weights_only=True)
         if not isinstance(data, dict) or data.get("version") != _CHECKPOINT_VERSION:
-            raise ValueError(f"not a checkpoint of this version ({_CHECKPOINT_VERSION})")
+            made = data.get("version") if isinstance(data, dict) else None
+            raise ValueError(f"written by another torchface, its layout {made!r}, this one's {_CHECKPOINT_VERSION}"
+                             if isinstance(made, int) else "not a checkpoint's layout")
         _check_checkpoint_layout(data)
         origin, here = data.get("origin"), _checkpoint_origin(model.device, model.dtype)
         if origin != here:  # (another version, device or dtype: a resume from the CSV's rows is allowed, not this)
@@ -2472,7 +2489,9 @@ def track_videos(
             leaves for ``resume`` (:func:`_kept_outputs`: the partial CSVs and their complete rows, the videos
             complete; or that nothing was written, interrupted before tracking). In the per-frame loop, SIGINT's and
             SIGTERM's Python handlers (the caller's own too) run at the end of the step under way, after every
-            live video's checkpoint (:class:`_AtStepBoundary`; the main thread only, the handlers given back after).
+            live video's checkpoint (:class:`_AtStepBoundary`; the main thread only, the handlers given back after);
+            where the step or its checkpoint failed meanwhile (a full disk), the interruption has that exception as
+            its ``error`` attribute (the command line says it, then that it was interrupted).
     """
     if isinstance(videos, (str, bytes, os.PathLike)):  # one path: its characters were taken as inputs
         raise TypeError(f"videos must be a sequence of paths, e.g. [{str(videos)!r}] for one video")
@@ -3224,11 +3243,11 @@ def _track_group(
         boundary.__exit__()
         t_track = time.perf_counter() - t_track0
         _keep_final(state, live, layout, list(range(len(live))))
-    except BaseException:
+    except BaseException as error:
         boundary.restore()
         for s in batch:
             _abandon(s)
-        boundary.check()  # (a signal that waited: its interruption, over the error)
+        boundary.check(error)  # (a signal that waited: its interruption, over the error, which it keeps)
         raise
     summaries: list[VideoSummary | None] = []
     finished = 0

@@ -1227,6 +1227,20 @@ def test_cli_interrupt_exit_status(monkeypatch, capsys, tmp_path):
     assert main(["track", "x.mp4", "--out", str(tmp_path), "--landmarks", "l.csv"]) == 130
     assert "nothing was written: run the same command again" in capsys.readouterr().err  # (the job said nothing)
 
+    def failed_while_waiting(*args, **kwargs):  # (the job's loop stopped by an error while a Ctrl-C waited: the
+        # interruption keeps it, _AtStepBoundary.check; it was not said, the run "interrupted" alone)
+        interruption = KeyboardInterrupt()
+        interruption.error = OutputError("o/a.state.partial: cannot write (No space left on device)")
+        interruption.kept = "rows kept in o/a.csv.partial (6 rows): run the same command with --resume to continue"
+        raise interruption
+
+    monkeypatch.setattr(torchface.job, "track_videos", failed_while_waiting)
+    assert main(["track", "x.mp4", "--out", str(tmp_path), "--landmarks", "l.csv"]) == 130
+    assert capsys.readouterr().err.splitlines()[-2:] == [
+        "torchface: error: o/a.state.partial: cannot write (No space left on device)",
+        "torchface: interrupted; rows kept in o/a.csv.partial (6 rows): run the same command with --resume to continue",
+    ]
+
 
 def _interrupt_message(capsys) -> str:
     err = capsys.readouterr().err

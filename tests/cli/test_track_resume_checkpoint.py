@@ -383,22 +383,30 @@ def test_a_video_that_stops_while_its_rows_are_replayed_leaves_its_batchs_state(
     np.testing.assert_allclose(got, ref, rtol=0, atol=1e-4)
 
 
-@pytest.mark.parametrize("damage", ["batch", "stream", "index"])
+@pytest.mark.parametrize("damage", ["batch", "stream", "index", "layout 2"])
 def test_a_checkpoint_lacking_part_of_its_layout_is_refused_with_a_warning(clips, tmp_path, damage):
     """A checkpoint of this version's number that lacks an entry the resume reads after the check (its batch, its
     bookkeeping) or whose place is not in its batch is not used: one warning line, the video goes on from its CSV's
-    rows. (It stopped the run with a KeyError.)"""
+    rows. (It stopped the run with a KeyError.) One of the layout before (2: without the detector counts) is not
+    used either, the line saying whose it is (it said "not a checkpoint of this version (3)", as if of torchface
+    3)."""
     clips = clips[:1]
     out = tmp_path / "out"
     _interrupted(clips, out)
     ck = out / "a.state.partial"
     data = torch.load(ck, weights_only=True)
+    said = f"{ck}: not used ("
     if damage == "index":
         data["index"] = 3
+    elif damage == "layout 2":
+        data["version"] = 2
+        for key in ("detector_calls", "redetections", "restart_failures"):
+            del data["stream"][key]
+        said += "written by another torchface, its layout 2, this one's 3): the video goes on from its CSV's rows"
     else:
         del data[damage]
     torch.save(data, ck)
-    _resumed_without_its_checkpoint(clips, out, f"{ck}: not used (")
+    _resumed_without_its_checkpoint(clips, out, said)
 
 
 @pytest.mark.parametrize("damage", ["rows", "record"])
@@ -612,8 +620,9 @@ def test_sigterm_in_the_command_line_writes_its_checkpoint_and_exits_143(clips, 
 def test_the_step_boundary_defers_python_handlers_in_the_main_thread_alone():
     """``_AtStepBoundary``: SIGINT's Python handler waits for ``check`` (no KeyboardInterrupt where the signal
     arrives), a second signal runs it at once, the handlers are given back as the block ends (a signal that waited
-    runs then), a caller's own handler is what runs, ``SIG_IGN`` is left as it is, and nothing changes outside the
-    main thread (where ``signal.signal`` raises)."""
+    runs then), a caller's own handler is what runs (with the boundary's frame), ``SIG_IGN`` is left as it
+    is, a nested block runs the handler itself, an error passed to ``check`` is the interruption's ``error``, and
+    nothing changes outside the main thread (where ``signal.signal`` raises)."""
     import os
     import signal
     import threading
@@ -643,6 +652,17 @@ def test_the_step_boundary_defers_python_handlers_in_the_main_thread_alone():
     def own(signum, frame):
         ran.append(signum)
 
+    def own_frame(signum, frame):
+        ran.append((signum, frame.f_code.co_name))
+
+    def mid_step():
+        os.kill(os.getpid(), signal.SIGINT)
+        for _ in range(100):  # (the deferring handler runs here, in this frame)
+            pass
+
+    def boundary_check(boundary):
+        boundary.check()
+
     before = signal.signal(signal.SIGINT, own)
     try:
         with _AtStepBoundary() as boundary:
@@ -651,11 +671,29 @@ def test_the_step_boundary_defers_python_handlers_in_the_main_thread_alone():
             boundary.check()
             assert ran == [signal.SIGINT]
         assert signal.getsignal(signal.SIGINT) is own
+        signal.signal(signal.SIGINT, own_frame)
+        with _AtStepBoundary() as boundary:  # its handler gets the frame it runs from (check's caller's), not the
+            mid_step()  # one the signal arrived in (its locals, a step's tensors, are not held until the boundary)
+            boundary_check(boundary)
+        assert ran[1:] == [(signal.SIGINT, "boundary_check")]
         signal.signal(signal.SIGINT, signal.SIG_IGN)
         with _AtStepBoundary():
             assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
     finally:
         signal.signal(signal.SIGINT, before)
+    # a track_videos within another's loop (its progress callback): a signal ends the inner one at its boundary
+    # (the outer loop's deferral had only marked the outer loop: the inner one tracked on to its end)
+    with _AtStepBoundary() as outer, _AtStepBoundary() as inner:
+        os.kill(os.getpid(), signal.SIGINT)
+        with pytest.raises(KeyboardInterrupt):
+            inner.check()
+        assert outer.pending is None
+    # an error that stopped the loop while a signal waited is kept by the interruption that replaces it
+    error = OSError(28, "No space left on device")
+    with pytest.raises(KeyboardInterrupt) as caught, _AtStepBoundary() as boundary:
+        os.kill(os.getpid(), signal.SIGINT)
+        boundary.check(error)
+    assert caught.value.error is error
     seen, failed = [], []
 
     def in_a_thread():

@@ -110,6 +110,8 @@ def test_from_matrix_reads_opencvs_calibration_matrix_and_refuses_what_no_camera
                         r"calibration matrix \(cx, cy = 321, 239 in its last row\)\? Pass K.T$"),
         (np.array(K) * 2, r"^matrix's last row .*got \(0, 0, 2\): a matrix scaled by 2\? Pass K / K\[2, 2\]$"),
         (np.hstack([K, [[0.0], [0.0], [0.0]]]), r"^matrix must be 3x3, got shape \(3, 4\) \(a 3x4 projection matrix"),
+        (torch.tensor(K)[None], r"^matrix must be 3x3, got shape \(1, 3, 3\) \(a batch of matrices\? An Intrinsics is "
+                                r"one camera"),
         ([[600.0, 2.0, 321.0], [0.0, 590.0, 239.0], [0.0, 0.0, 1.0]], r"^matrix must have no skew .*got K\[0, 1\] = 2"),
         ([[600.0, 0.0, float("nan")], [0.0, 590.0, 239.0], [0.0, 0.0, 1.0]], "^matrix must be finite"),
     ]
@@ -134,15 +136,17 @@ def test_from_matrix_reads_opencvs_calibration_matrix_and_refuses_what_no_camera
                                r"cx=319.5, cy=239.5\)"),
         ((600.0, 600.0, 0.0, 0.0), r"principal point at the top-left pixel: a transposed K read .* a centred camera's "
                                    r"principal point \(319.5, 239.5\)"),
-        ((1000.0, 400.0, 319.5, 239.5), r"are implausible \(focal lengths more than 1.25 apart"),
+        ((1000.0, 400.0, 319.5, 239.5), r"are implausible \(fx more than 1.25 times fy or fy more than 2 times fx"),
+        ((400.0, 900.0, 319.5, 239.5), r"are implausible \(fx more than 1.25 times fy"),  # wide pixels: over 2
         ((300.0, 300.0, 900.0, 240.0), r"are implausible .*a principal point outside the frame"),
         ((600.0, 600.0, 319.5, 239.5), None),
         ((900.0, 880.0, 100.0, 400.0), None),  # off-centre, inside the frame: plausible (crops of a sensor exist)
         ((300.0, 300.0, -0.5, 479.5), None),  # at the frame's corner pixel's edge
         ((1000.0, 850.0, 319.5, 239.5), None),  # pixels 1.18 from square: within PLAUSIBLE_ASPECT
+        ((600.0 / 1.42, 600.0, 319.5, 239.5), None),  # PAL 16:9 DV's wide pixels (HDV's 4/3 too): were "implausible"
     ],
-    ids=["opencv-order", "swapped", "normalised", "corner", "aspect", "outside", "centred", "off-centre", "edge",
-         "non-square"],
+    ids=["opencv-order", "swapped", "normalised", "corner", "aspect", "wide-pixels-2", "outside", "centred",
+         "off-centre", "edge", "non-square", "anamorphic"],
 )
 def test_mixed_up_intrinsics_are_named_with_the_likely_fix(given, said) -> None:
     """A camera whose numbers read as a mix-up of the constructor's arguments (OpenCV's matrix order, the principal

@@ -115,6 +115,9 @@ class Intrinsics:
         if tuple(K.shape) != (3, 3):
             hint = (" (a 3x4 projection matrix K [R | t]? Its left 3x3 block is K R, not K: decompose it, e.g. "
                     "cv2.decomposeProjectionMatrix)" if tuple(K.shape) == (3, 4) else "")  # fmt: skip
+            if K.dim() == 3 and tuple(K.shape[1:]) == (3, 3):  # (a batch's: one Intrinsics is one camera)
+                hint = (" (a batch of matrices? An Intrinsics is one camera, which the tracker's whole batch shares: "
+                        "from_matrix(K[b], ...) for a stream's)")  # fmt: skip
             raise ValueError(f"matrix must be 3x3, got shape {tuple(K.shape)}{hint}")
         v = K.detach().to("cpu", torch.float64)
         if not bool(torch.isfinite(v).all()):
@@ -167,21 +170,26 @@ class Intrinsics:
         return Intrinsics(w, h, self.fx * sx, self.fy * sy, (self.cx + 0.5) * sx - 0.5, (self.cy + 0.5) * sy - 0.5)
 
 
-#: The most the focal lengths of a frame's camera may differ (the larger over the smaller) before
-#: :func:`mixed_up_intrinsics` looks for a mix-up: pixels this far from square are rare (anamorphic lenses).
+#: The most ``fx`` may exceed ``fy`` (their ratio) before :func:`mixed_up_intrinsics` looks for a mix-up: pixels
+#: taller than wide are rare (NTSC 4:3 DV's, 10/11 wide: 1.1), and OpenCV's order read as the constructor's puts
+#: ``cx`` as ``fy``, under ``fx`` but for a field of view over 90 degrees.
 PLAUSIBLE_ASPECT: float = 1.25
+#: The most ``fy`` may exceed ``fx``: pixels wider than tall, as anamorphic video stores them (HDV's 1440x1080
+#: frames shown 16:9: 4/3; PAL 16:9 DV's 64/45: 1.42; a 2x anamorphic lens: 2), were told "implausible" at 1.25.
+PLAUSIBLE_WIDE_PIXELS: float = 2.0
 
 
 def _fits(w: int, h: int, fx: float, fy: float, cx: float, cy: float, tight: bool) -> bool:
-    """Whether ``fx, fy, cx, cy`` are a plausible camera of a ``w x h`` frame: focal lengths within
-    :data:`PLAUSIBLE_ASPECT` of each other and at least 5 % of the frame's larger side (a field of view under 175
-    degrees), the principal point inside the frame; ``tight``: as a frame's camera nearly always is, focal lengths
-    within 10 % of each other and the principal point within 15 % of the frame's size from its centre."""
-    aspect = max(fx, fy) / min(fx, fy)
+    """Whether ``fx, fy, cx, cy`` are a plausible camera of a ``w x h`` frame: ``fx / fy`` at most
+    :data:`PLAUSIBLE_ASPECT` and ``fy / fx`` at most :data:`PLAUSIBLE_WIDE_PIXELS`, both at least 5 % of the
+    frame's larger side (a field of view under 175 degrees), the principal point inside the frame; ``tight``: as a
+    frame's camera nearly always is, focal lengths within 10 % of each other and the principal point within 15 % of
+    the frame's size from its centre."""
     if tight:
-        return aspect <= 1.1 and abs(cx - (w - 1) / 2) <= 0.15 * w and abs(cy - (h - 1) / 2) <= 0.15 * h
-    return aspect <= PLAUSIBLE_ASPECT and min(fx, fy) >= 0.05 * max(w, h) and -0.5 <= cx <= w - 0.5 \
-        and -0.5 <= cy <= h - 0.5
+        return max(fx, fy) / min(fx, fy) <= 1.1 and abs(cx - (w - 1) / 2) <= 0.15 * w \
+            and abs(cy - (h - 1) / 2) <= 0.15 * h
+    return fx / fy <= PLAUSIBLE_ASPECT and fy / fx <= PLAUSIBLE_WIDE_PIXELS and min(fx, fy) >= 0.05 * max(w, h) \
+        and -0.5 <= cx <= w - 0.5 and -0.5 <= cy <= h - 0.5
 
 
 def mixed_up_intrinsics(intrinsics: Intrinsics) -> str | None:
@@ -190,9 +198,10 @@ def mixed_up_intrinsics(intrinsics: Intrinsics) -> str | None:
 
     Nothing here is impossible (a principal point off the frame's centre, or outside a crop of the sensor, and
     non-square pixels exist), so :func:`~torchface.tracker.step.initialise` warns with it and tracks on
-    (:func:`~torchface.tracker.step.check_initialise_inputs`). A camera is looked at where it is implausible: focal
-    lengths more than :data:`PLAUSIBLE_ASPECT` apart, one under 5 % of the frame's larger side, or the principal
-    point outside the frame. Recognised, where the mix-up's reading is a frame's usual camera (focal lengths within
+    (:func:`~torchface.tracker.step.check_initialise_inputs`). A camera is looked at where it is implausible: ``fx``
+    more than :data:`PLAUSIBLE_ASPECT` times ``fy``, or ``fy`` more than :data:`PLAUSIBLE_WIDE_PIXELS` times ``fx``
+    (anamorphic video's wide pixels), one under 5 % of the frame's larger side, or the principal point outside the
+    frame. Recognised, where the mix-up's reading is a frame's usual camera (focal lengths within
     10 %, the principal point near the centre):
 
     - OpenCV's matrix order ``fx, cx, fy, cy`` (``K``'s entries row by row) given as ``fx, fy, cx, cy``;
@@ -230,6 +239,7 @@ def mixed_up_intrinsics(intrinsics: Intrinsics) -> str | None:
         if min(a, b) > 0 and _fits(w, h, a, b, c, d, tight=True):
             return (f"intrinsics {given} look mixed up: {what} Likely meant: Intrinsics({w}, {h}, fx={a:g}, fy={b:g}, "
                     f"cx={c:g}, cy={d:g}), or Intrinsics.from_matrix(K, {w}, {h}) from a 3x3 calibration matrix")
-    return (f"intrinsics {given} are implausible (focal lengths more than {PLAUSIBLE_ASPECT:g} apart, under 5 % of "
-            f"the frame's size, or a principal point outside the frame): check the order, Intrinsics(width, height, "
-            f"fx, fy, cx, cy), or use Intrinsics.from_matrix(K, {w}, {h})")
+    return (f"intrinsics {given} are implausible (fx more than {PLAUSIBLE_ASPECT:g} times fy or fy more than "
+            f"{PLAUSIBLE_WIDE_PIXELS:g} times fx, under 5 % of the frame's size, or a principal point outside the "
+            f"frame): check the order, Intrinsics(width, height, fx, fy, cx, cy), or use Intrinsics.from_matrix(K, "
+            f"{w}, {h})")
