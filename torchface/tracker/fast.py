@@ -96,7 +96,8 @@ class LevelOutcome:
     #: :func:`linearise`'s output ``(r, J, valid, sampled)`` at the final estimate (with ``final_check`` and
     #: ``keep_linearisation``), for a following pass at the same level to start from (``solve_level(start=...)``).
     linearisation: tuple[Tensor, Tensor, Tensor, Tensor] | None = None
-    #: The level's :class:`_LevelConstants`, for such a pass to reuse (``solve_level(constants=...)``).
+    #: The level's :class:`_LevelConstants`, for such a pass to reuse (``solve_level(constants=...)``): the torch
+    #: code's; the native solver, which reads the template alone, hands on those it was given (None: none made).
     constants: _LevelConstants | None = None
 
 
@@ -748,7 +749,7 @@ def _solve_level_native(
     torch.neg(light_basis.transpose(1, 2), out=nlb)
     offsets = _rows(cam.offset, dtype, cam.offset.shape)
     mask_c = mask.contiguous()
-    free_u8 = _free_row(tuple(bool(v) for v in free.tolist()))
+    free_u8 = _free_row(tuple(free.tolist()))
     # (use_native let no gradient through: the copies need no detach)
     R_out, t_out, alpha_out, light_out = (x.clone(memory_format=torch.contiguous_format) for x in (R, t, alpha, light))
     # (B, A) for the kernel, one row per stream (shared (A,) bounds repeated)
@@ -814,9 +815,9 @@ def _rows(x: Tensor, dtype: torch.dtype, shape: tuple[int, ...]) -> Tensor:
 
 
 @functools.lru_cache(maxsize=64)
-def _free_row(free: tuple[bool, ...]) -> Tensor:
-    """The native solver's free-parameter mask ``(P,)`` uint8 of ``free``. Cached per mask, made outside inference
-    mode; the kernel only reads it."""
+def _free_row(free: tuple[bool | int | float, ...]) -> Tensor:
+    """The native solver's free-parameter mask ``(P,)`` uint8 of ``free`` (a mask's values, as ``.to(torch.uint8)``
+    converts them). Cached per mask, made outside inference mode; the kernel only reads it."""
     with torch.inference_mode(False):
         return torch.tensor(free, dtype=torch.uint8)
 
