@@ -96,7 +96,8 @@ class LevelOutcome:
     #: :func:`linearise`'s output ``(r, J, valid, sampled)`` at the final estimate (with ``final_check`` and
     #: ``keep_linearisation``), for a following pass at the same level to start from (``solve_level(start=...)``).
     linearisation: tuple[Tensor, Tensor, Tensor, Tensor] | None = None
-    #: The level's :class:`_LevelConstants`, for such a pass to reuse (``solve_level(constants=...)``).
+    #: The level's :class:`_LevelConstants`, for such a pass to reuse (``solve_level(constants=...)``): the torch
+    #: code's; the native solver, which reads the template alone, hands on those it was given (None: none made).
     constants: _LevelConstants | None = None
 
 
@@ -342,14 +343,15 @@ def _check_bounds(lower: Tensor, upper: Tensor) -> None:
     call); per-stream bounds with more than :data:`_LIST_CHECK_VALUES` values elementwise first (at 128 streams, 11
     units, the lists' loop took 0.3-0.7 ms per call, four calls a step)."""
     if (
-        lower.device.type != "cpu" or upper.device.type != "cpu" or lower.numel() + upper.numel() > _LIST_CHECK_VALUES
+        not lower.is_cpu or not upper.is_cpu or lower.numel() + upper.numel() > _LIST_CHECK_VALUES
     ) and bool(_bounds_valid(lower, upper)):
         return
     A = lower.shape[-1]
     lo, hi = lower.reshape(-1).tolist(), upper.reshape(-1).tolist()  # (from any device; tolist ignores autograd)
+    inf = float("inf")
     for i, (a, b) in enumerate(zip(lo, hi)):
-        j = i % A  # (per-stream bounds (B, A): the unit of row-major index i)
-        if not (a <= b and a < float("inf") and b > float("-inf")):
+        if not (a <= b and a < inf and b > -inf):
+            j = i % A  # (per-stream bounds (B, A): the unit of row-major index i)
             raise ValueError(
                 "alpha_lower and alpha_upper must be bounds, lower <= upper, neither NaN, a lower bound below inf and "
                 f"an upper above -inf (-inf / inf: none on that side), got [{a}, {b}] for animation unit {j}"
@@ -730,12 +732,14 @@ def _solve_level_native(
     A, L = alpha.shape[1], light.shape[1]
     P = 6 + A + L
     dtype = R.dtype
-    k = _level_constants(cam, R, tpl) if constants is None else constants
     if image.shape[1] != 1:
         raise ValueError(f"image must be the (B, 1, h, w) gray crop, got {tuple(image.shape)}")
     image = image.contiguous()
     h, w = image.shape[-2:]
-    points_t, normals_t, basis_t = (x.contiguous() for x in (k.points_t, k.normals_t, k.basis_t))
+    # The kernel reads the template point-last alone: the rest of _LevelConstants (the torch code's sampling grid,
+    # 11 dispatched operations a level) is not made here, and the outcome hands on the constants it was given.
+    point_last = tpl.point_last if constants is None else (constants.points_t, constants.normals_t, constants.basis_t)
+    points_t, normals_t, basis_t = (x.contiguous() for x in point_last)
     intensity = tpl.intensity.contiguous()
     # (B, L, N), negated straight into contiguous memory (the negation of the transposed view kept its layout, and
     # .contiguous() copied it again: two 3.7 MB tensors per pass at 128 streams)
@@ -743,20 +747,20 @@ def _solve_level_native(
     nlb = torch.empty(nlb_shape, dtype=light_basis.dtype) if workspace is None else workspace.buffer(
         "neg_light_basis", nlb_shape, light_basis.dtype, light_basis.device)
     torch.neg(light_basis.transpose(1, 2), out=nlb)
-    offsets = cam.offset.to(dtype).contiguous()
+    offsets = _rows(cam.offset, dtype, cam.offset.shape)
     mask_c = mask.contiguous()
-    free_u8 = free.to(device="cpu", dtype=torch.uint8).contiguous()
-    R_out, t_out, alpha_out, light_out = (x.detach().clone(memory_format=torch.contiguous_format)
-                                          for x in (R, t, alpha, light))  # fmt: skip
+    free_u8 = _free_row(tuple(free.tolist()))
+    # (use_native let no gradient through: the copies need no detach)
+    R_out, t_out, alpha_out, light_out = (x.clone(memory_format=torch.contiguous_format) for x in (R, t, alpha, light))
     # (B, A) for the kernel, one row per stream (shared (A,) bounds repeated)
-    lower = alpha_lower.to(dtype).expand(B, A).contiguous()
-    upper = alpha_upper.to(dtype).expand(B, A).contiguous()
-    mean = None if alpha_mean is None else alpha_mean.to(dtype).expand(B, A).contiguous()
+    lower = _rows(alpha_lower, dtype, (B, A))
+    upper = _rows(alpha_upper, dtype, (B, A))
+    mean = None if alpha_mean is None else _rows(alpha_mean, dtype, (B, A))
     if isinstance(alpha_prior, Tensor):  # (B, A) for the kernel
         ap = alpha_prior.to(torch.float64)
         prior = (ap.unsqueeze(-1) if ap.dim() == 1 else ap).expand(B, A).contiguous()
     else:
-        prior = torch.full((B, A), float(alpha_prior), dtype=torch.float64)
+        prior = _shared_prior(float(alpha_prior).hex(), B, A)  # (hex: -0.0 and 0.0 apart)
     loss_kind, loss_c = _loss_codes(robust, B)
     tol = _tolerance_row(tuple(step_tolerance), P, dtype)  # as the torch code compares them: rounded to the dtype
     if start is not None:
@@ -795,5 +799,32 @@ def _solve_level_native(
     )  # fmt: skip
     _native.run("solve_level", dtype == torch.float64, prob, B, torch.get_num_threads())
     linearisation = (residual, J_out.transpose(1, 2), valid, sampled) if J_out is not None else None  # (keep)
-    outcome = LevelOutcome(residual, valid & isfinite(residual), sampled, iters, converged, finite, linearisation, k)
+    outcome = LevelOutcome(
+        residual, valid & isfinite(residual), sampled, iters, converged, finite, linearisation, constants
+    )  # fmt: skip
     return R_out, t_out, alpha_out, light_out, outcome
+
+
+def _rows(x: Tensor, dtype: torch.dtype, shape: tuple[int, ...]) -> Tensor:
+    """``x`` as a contiguous ``shape`` tensor of ``dtype`` for a native kernel to read (never written): ``x`` itself
+    where it is one already, else ``x.to(dtype).expand(shape).contiguous()`` (each of those a dispatched operation,
+    about 3 microseconds, even where it changes nothing)."""
+    if x.dtype == dtype and x.shape == shape and x.is_contiguous():
+        return x
+    return x.to(dtype).expand(shape).contiguous()
+
+
+@functools.lru_cache(maxsize=64)
+def _free_row(free: tuple[bool | int | float, ...]) -> Tensor:
+    """The native solver's free-parameter mask ``(P,)`` uint8 of ``free`` (a mask's values, as ``.to(torch.uint8)``
+    converts them). Cached per mask, made outside inference mode; the kernel only reads it."""
+    with torch.inference_mode(False):
+        return torch.tensor(free, dtype=torch.uint8)
+
+
+@functools.lru_cache(maxsize=64)
+def _shared_prior(precision: str, B: int, A: int) -> Tensor:
+    """The native solver's ``(B, A)`` float64 prior precisions of one float (``precision``: its ``float.hex()``) for
+    every stream and unit. Cached per setting, made outside inference mode; the kernel only reads it."""
+    with torch.inference_mode(False):
+        return torch.full((B, A), float.fromhex(precision), dtype=torch.float64)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import ctypes
 import enum
+import functools
 import math
 import threading
 import warnings
@@ -25,6 +26,7 @@ from torchface._autocast import full_precision
 from torchface._compiling import check_reverse_mode
 from torchface._device import check_holds_data, check_to_arguments
 from torchface._frame_values import FRAME_VALUE_RANGE, STEP_VALUE_ROW_STRIDE, check_frame_values
+from torchface._scalar import scalar
 from torchface.appearance.illumination import ILLUMINATION_TERM_NAMES, NUM_ILLUMINATION_TERMS, illumination_basis
 from torchface.appearance.sampling import image_with_gradients, pyr_down, sample_at_pixels, to_gray
 from torchface.backend import Backend, use_native
@@ -1343,9 +1345,14 @@ def _result(
         rotation=R, axis_angle=aa, translation=t, ypr_deg=matrix_to_euler(R), anim_coeffs=alpha,
         anim_names=model.animation_names, expression=expression, facs=model.facs_values(expression),
         facs_names=model.facs_names,
-        illumination=light, illumination_names=ILLUMINATION_TERM_NAMES, status=status.to(torch.int64),
-        iterations=iterations.to(torch.int64), cost=cost, num_points=num_points, confidence=confidence,
+        illumination=light, illumination_names=ILLUMINATION_TERM_NAMES, status=_int64(status),
+        iterations=_int64(iterations), cost=cost, num_points=num_points, confidence=confidence,
     )
+
+
+def _int64(x: Tensor) -> Tensor:
+    """``x.to(torch.int64)``, without the dispatched operation where ``x`` is int64 already (``to`` returns it)."""
+    return x if x.dtype == torch.int64 else x.to(torch.int64)
 
 
 def step_grad_inputs(
@@ -1958,11 +1965,7 @@ def _fast_step(
         else:
             masks, visibility = list(cached[1]), cached
     R_prev = R
-    free = torch.ones(layout.size, dtype=torch.bool)  # on the host: solve_level reads it there
-    if not config.use_expression:
-        free[layout.animation] = False
-    if not config.use_illumination:
-        free[layout.illumination] = False
+    free, only = _free_masks(layout, config.use_expression, config.use_illumination)
     robust = None if config.robust is RobustKind.NONE else RobustLoss(config.robust, config.robust_c)
     lo, hi = animation_bounds(model, config, state)
     if lo.dim() == 2 and config.use_expression:
@@ -2005,9 +2008,6 @@ def _fast_step(
             scale = robust_scale_of(out.residual, out.valid, scale_floor(config, level))  # as the level's IRLS
             clean = _clean_streams(config, near_template, robust, out.residual, out.valid, scale)
     if refine:
-        only = free.clone()
-        only[layout.rotation] = False
-        only[layout.translation] = False
         refine_prior: float | Tensor = config.expression_prior_precision
         if config.refine_prior_precision is not None:
             refine_prior = config.refine_prior_precision
@@ -2030,6 +2030,24 @@ def _fast_step(
         model, config, layout, state, tpl, x, out.residual, out.valid, out.sampled, ~out.finite, status, out.iterations
     )
     return replace(new_state, visibility=visibility), result
+
+
+@functools.lru_cache(maxsize=64)
+def _free_masks(layout: ParamLayout, use_expression: bool, use_illumination: bool) -> tuple[Tensor, Tensor]:
+    """The fast step's free-parameter masks ``(P,)`` bool, on the host (the solvers read them there): the level
+    passes' (the animation and illumination parameters fixed where ``use_expression`` / ``use_illumination`` is
+    False) and the refinement pass's (the pose fixed too). Cached per setting, made outside inference mode; the
+    solvers only read them."""
+    with torch.inference_mode(False):
+        free = torch.ones(layout.size, dtype=torch.bool)
+        if not use_expression:
+            free[layout.animation] = False
+        if not use_illumination:
+            free[layout.illumination] = False
+        only = free.clone()
+        only[layout.rotation] = False
+        only[layout.translation] = False
+        return free, only
 
 
 def _level_light_basis(tpl: Template, R: Tensor, level: int, workspace: StepWorkspace | None) -> Tensor:
@@ -2074,11 +2092,12 @@ def _finish(
     parameters and gets confidence 0.
     """
     n_valid = valid.sum(-1)
+    count = n_valid.clamp_min(1)
     vf = valid.to(x.dtype)
-    r = torch.nan_to_num(torch.where(valid, residual, torch.zeros_like(residual)))
-    mean_i = (sampled * vf).sum(-1) / n_valid.clamp_min(1)
-    std_i = (((sampled - mean_i.unsqueeze(-1)) ** 2 * vf).sum(-1) / n_valid.clamp_min(1)).sqrt()
-    rms = ((r**2 * vf).sum(-1) / n_valid.clamp_min(1)).sqrt()
+    r = torch.nan_to_num(torch.where(valid, residual, scalar(0.0, residual)))
+    mean_i = (sampled * vf).sum(-1) / count
+    std_i = (((sampled - mean_i.unsqueeze(-1)) ** 2 * vf).sum(-1) / count).sqrt()
+    rms = ((r**2 * vf).sum(-1) / count).sqrt()
     failed = solver_failed | (n_valid < config.min_points) | (std_i < config.min_contrast) | ~torch.isfinite(x).all(-1)
     x = torch.where(failed.unsqueeze(-1), state.params, x)
     status = torch.where(failed, int(TrackStatus.FAILED), status)
