@@ -1517,10 +1517,10 @@ def _check_checkpoint_layout(data: dict) -> None:
     if not isinstance(stream, dict) or not isinstance(batch, list) or not all(isinstance(n, str) for n in batch):
         raise ValueError("its batch or bookkeeping is not of its layout")
     failures = stream["restart_failures"]
-    if not all(isinstance(stream[k], int) for k in ("detector_calls", "redetections")) or not isinstance(
-            failures, dict) or not all(isinstance(k, str) and isinstance(v, int) for k, v in failures.items()):
+    if not all(type(stream[k]) is int for k in ("detector_calls", "redetections")) or not isinstance(  # (not bool)
+            failures, dict) or not all(isinstance(k, str) and type(v) is int for k, v in failures.items()):
         raise ValueError("its detector counts are not of their layout")
-    if not isinstance(index, int) or not 0 <= index < len(batch):
+    if type(index) is not int or not 0 <= index < len(batch):
         raise ValueError(f"its place {index!r} is not in its batch of {len(batch)}")
     for name, shape in (("first_R", (1, 3, 3)), ("first_t", (1, 3))):
         if not isinstance(data[name], Tensor) or tuple(data[name].shape) != shape:

@@ -722,8 +722,11 @@ def test_a_checkpoints_detector_counts_are_checked_with_its_layout():
             "stream": stream}  # fmt: skip
     _check_checkpoint_layout(data)
     for key, value in (("detector_calls", "3"), ("redetections", None), ("restart_failures", {"OUTSIDE_FRAME": 2.0}),
-                       ("restart_failures", [2])):  # fmt: skip
+                       ("restart_failures", [2]), ("detector_calls", True),
+                       ("restart_failures", {"OUTSIDE_FRAME": True})):  # fmt: skip
         with pytest.raises(ValueError, match="its detector counts are not of their layout"):
             _check_checkpoint_layout(data | {"stream": stream | {key: value}})
+    with pytest.raises(ValueError, match="its place True is not in its batch of 1"):  # (a bool is no place)
+        _check_checkpoint_layout(data | {"index": True})
     with pytest.raises(ValueError, match=r"it lacks stream\.restart_failures"):
         _check_checkpoint_layout(data | {"stream": {k: v for k, v in stream.items() if k != "restart_failures"}})

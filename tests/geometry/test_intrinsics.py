@@ -120,6 +120,12 @@ def test_from_matrix_reads_opencvs_calibration_matrix_and_refuses_what_no_camera
             Intrinsics.from_matrix(bad, 640, 480)
     with pytest.raises(TypeError, match="matrix must be a 3x3 calibration matrix"):
         Intrinsics.from_matrix("K", 640, 480)
+    with pytest.raises(TypeError, match="matrix must hold real numbers, got bool"):  # (was read as 0 / 1)
+        Intrinsics.from_matrix(np.array(K) > 1, 640, 480)
+    # float32 arithmetic's rounding of the last row (K / K[2, 2] computed in float32) is the calibration it rounds
+    rounded = np.array(K, dtype=np.float64)
+    rounded[2] = [1e-10, -1e-10, np.float32(1) - np.finfo(np.float32).eps / 2]
+    assert Intrinsics.from_matrix(rounded, 640, 480) == expected
     with pytest.raises(TypeError, match=r"width must be a whole number of pixels, got 600.5 \(Intrinsics takes width, "
                                         r"height, fx, fy, cx, cy in this order; from a 3x3 calibration matrix"):
         Intrinsics(600.5, 590.5, 321.0, 239.0, 640, 480)  # type: ignore[arg-type]

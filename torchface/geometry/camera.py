@@ -7,6 +7,7 @@ import numbers
 from dataclasses import dataclass
 from typing import cast
 
+import numpy as np
 import torch
 
 
@@ -107,6 +108,8 @@ class Intrinsics:
                 raise TypeError(f"matrix must hold real numbers, got {matrix.dtype}")
             K = matrix if grad else matrix.detach().to("cpu", torch.float64)
         else:
+            if isinstance(matrix, np.ndarray) and (matrix.dtype == np.bool_ or np.iscomplexobj(matrix)):
+                raise TypeError(f"matrix must hold real numbers, got {matrix.dtype}")
             try:
                 K = torch.as_tensor(matrix, dtype=torch.float64)
             except (TypeError, ValueError, RuntimeError):
@@ -123,6 +126,8 @@ class Intrinsics:
         if not bool(torch.isfinite(v).all()):
             raise ValueError(f"matrix must be finite, got {v.tolist()}")
         last = v[2].tolist()
+        if abs(last[0]) <= 1e-9 and abs(last[1]) <= 1e-9 and abs(last[2] - 1.0) <= 1e-6:  # (float rounding: K from
+            last = [0.0, 0.0, 1.0]  # float32 arithmetic, K[2, 2] = 0.99999994, is the calibration it rounds)
         if last[:2] != [0.0, 0.0] or last[2] != 1.0:
             if last[2] == 1.0 and v[0, 2] == 0 and v[1, 2] == 0 and v[1, 0] == 0 and v[0, 1] == 0:
                 hint = (f": the transpose of a calibration matrix (cx, cy = {last[0]:g}, {last[1]:g} in its last "
