@@ -1329,9 +1329,23 @@ class _AtStepBoundary:
     def _defer(self, signum: int, frame: Any) -> None:
         if self.pending is None:
             self.pending = signum
+            self._notice(signum)
             return
         self.pending = None  # a second one: its handler at once, mid-step (no checkpoint of that state)
         self._handlers[signum](signum, frame)
+
+    @staticmethod
+    def _notice(signum: int) -> None:
+        """Say that the signal waits for the step's end (a large batch's step and checkpoints take a second or more,
+        in which a user sees nothing happen), as a warning (``torchface track``: one ``torchface: warning:`` line).
+        Never an error of the step it interrupts: a warning made an exception (``-W error``), or a write of stderr
+        that the signal interrupted (a reentrant call), leaves it unsaid."""
+        again = "; Ctrl-C again stops at once" if signum == signal.SIGINT else "; a second signal stops at once"
+        try:
+            warnings.warn(f"{signal.Signals(signum).name}: stopping once the frame under way is written, after its "
+                          f"checkpoint{again}", RuntimeWarning, stacklevel=2)
+        except Exception:
+            pass
 
     def restore(self) -> None:
         """Put the previous handlers back (a signal that waits still waits for :meth:`check`)."""
