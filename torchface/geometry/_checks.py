@@ -164,7 +164,10 @@ def check_number(value: object, name: str, interval: str, optional: bool = False
     return number
 
 
-@functools.lru_cache(maxsize=None)
+#: An interval as :func:`check_number` is given it.
+_INTERVAL = re.compile(r"([\[(])\s*([^\s,]+)\s*,\s*([^\s,]+)\s*([\])])")
+
+
 def _interval(interval: str) -> tuple[float, float, bool, bool]:
     """``(low, high, low_open, high_open)`` of an interval written ``"[a, b)"`` (``inf`` and ``-inf`` allowed).
 
@@ -172,7 +175,8 @@ def _interval(interval: str) -> tuple[float, float, bool, bool]:
         ValueError: ``interval`` is not so written, or holds no number (``"[1, 0]"``, ``"(0, 0]"``, a NaN bound:
             every value was refused, the message saying the empty range).
     """
-    match = re.fullmatch(r"([\[(])\s*([^\s,]+)\s*,\s*([^\s,]+)\s*([\])])", interval)
+    match = _INTERVAL.fullmatch(interval)  # (not cached: torch.compile traces the check in normalised_face, and
+    # warns of a functools.lru_cache it meets; a parse is about a microsecond)
     try:
         low, high = (float(match[2]), float(match[3])) if match is not None else (math.nan, math.nan)
     except ValueError:
