@@ -118,7 +118,7 @@ the dataset to its workers by reference to its shared memory (forked, or pickled
 of a video, :class:`ShortVideoWarning`, :class:`DistributedWarning`) are given exactly once among a dataset's
 processes: the first to create a marker file in the dataset's private temporary folder (``torchface-dataset-*``,
 made with the dataset, removed when it is collected or its process exits; one a killed process left is removed by
-a later dataset, once its maker is certainly gone) gives it.
+a later process's first dataset, once its maker is certainly gone) gives it.
 
 Cache: with :attr:`DatasetConfig.cache_dir`, a video's :class:`~training_hooks.transforms.TrackedSequence`
 (parameters, confidence, status and the normalised faces, uint8 by default) is stored after tracking and read
@@ -410,6 +410,13 @@ def _remove_stale_claims(folder: str, owner: tuple[str, int, int, int]) -> list[
     return removed
 
 
+#: The temporary folders whose stale dataset folders a process has removed (:func:`_remove_stale_claims`), as
+#: ``(pid, folder)``: once a process and folder, at its first dataset there (the makers gone then; one that dies
+#: later leaves its folder to a later process's first dataset). A forked process (a ``DataLoader`` worker that
+#: makes a dataset: a plain pickle, a ``deepcopy``) has another pid, and scans once itself.
+_SCANNED: set[tuple[int, str]] = set()
+
+
 class _Claims:
     """What makes a once-per-dataset warning exactly once across the dataset's processes (its ``DataLoader``
     workers, forked or spawned, and the process that holds it): a private folder (``tempfile.mkdtemp``, made with
@@ -420,9 +427,10 @@ class _Claims:
     decides.
 
     The folder is removed when the dataset that made it is collected, or at the exit of its process (not by its
-    workers, nor a forked child's exit); a process killed (SIGKILL) leaves it, empty but for a few markers, and a
-    later dataset made on the machine, in the same pid namespace, removes it (:func:`_remove_stale_claims`: its name
-    records its maker, once certainly gone; where that cannot be known, it stays). It
+    workers, nor a forked child's exit); a process killed (SIGKILL) leaves it, empty but for a few markers, and the
+    first dataset that a later process makes in that temporary folder, on the machine and in the same pid namespace,
+    removes it (:func:`_remove_stale_claims`, once a process and folder: :data:`_SCANNED`; its name records its
+    maker, once certainly gone; where that cannot be known, it stays). It
     travels as the tensors of shared memory do: by reference to the ``DataLoader`` workers
     (``multiprocessing``'s pickler, :meth:`_shared_reduce`), while a plain ``pickle`` of the dataset (whose tensors
     are then copied by value, an independent dataset) and ``copy.deepcopy`` make a new folder. Where no folder can
@@ -441,9 +449,11 @@ class _Claims:
             # started, which leaves by os._exit, without atexit: the folders of datasets made in a torch.multiprocessing
             # rank were left; and only in the process that made it)
             multiprocessing.util.Finalize(self, shutil.rmtree, (self.folder, True), exitpriority=0)
-            if owner is not None:
+            where = (owner[2], os.path.dirname(self.folder)) if owner is not None else None
+            if owner is not None and where not in _SCANNED:  # (once a process and folder: a scan cost 0.65 ms
+                _SCANNED.add(where)  # a dataset, a copy or a worker's pickle, with 400 entries in /tmp)
                 try:
-                    _remove_stale_claims(os.path.dirname(self.folder), owner)
+                    _remove_stale_claims(where[1], owner)
                 except Exception:  # (a cleanup of others' leftovers: never the dataset's failure)
                     pass
 

@@ -554,7 +554,46 @@ def test_a_killed_processs_dataset_folder_is_removed_by_the_next_dataset(tmp_pat
         live.kill()
         live.wait(30)
     monkeypatch.setattr(datasets, "_remove_stale_claims", lambda *args: 1 / 0)
+    monkeypatch.setattr(datasets, "_SCANNED", set())  # (this process scanned tmp_path above: scan it again)
     assert os.path.isdir(datasets._Claims().folder)  # (its cleanup failed: the dataset's folder made all the same)
+    assert datasets._SCANNED == {(os.getpid(), str(tmp_path))}  # (failed: not tried again at every dataset)
+
+
+@pytest.mark.skipif(not hasattr(os, "fork") or not os.path.isdir("/proc/self"),
+                    reason="a process's start is read from Linux's /proc; a forked process")
+def test_the_stale_folder_cleanup_scans_a_temporary_folder_once_a_process(tmp_path, monkeypatch):
+    """The cleanup of killed processes' dataset folders scanned the temporary folder at every dataset made (its
+    copies, a worker's pickle: 0.4-0.65 ms each with a few hundred entries in /tmp); now at a process's first
+    dataset in that folder, and again at the first in another folder or in a forked process (another pid)."""
+    import tempfile
+
+    from training_hooks import datasets
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    monkeypatch.setattr(datasets, "_SCANNED", set())
+    scans: list[tuple[int, str]] = []
+    scan = datasets._remove_stale_claims
+    monkeypatch.setattr(datasets, "_remove_stale_claims",
+                        lambda folder, owner: scans.append((os.getpid(), folder)) or scan(folder, owner))  # fmt: skip
+    kept = [datasets._Claims(), datasets._Claims(), copy.deepcopy(datasets._Claims())]
+    assert scans == [(os.getpid(), str(tmp_path))] and all(os.path.isdir(c.folder) for c in kept)
+    (tmp_path / "other").mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "other"))
+    kept += [datasets._Claims(), datasets._Claims()]
+    assert scans[1:] == [(os.getpid(), str(tmp_path / "other"))]
+    read, write = os.pipe()
+    child = os.fork()
+    if child == 0:  # (a DataLoader worker making a dataset: its own first scan, once)
+        try:
+            datasets._Claims(), datasets._Claims()
+            os.write(write, repr(scans).encode())
+        finally:
+            os._exit(0)
+    os.close(write)
+    with os.fdopen(read) as f:
+        seen = f.read()
+    os.waitpid(child, 0)
+    assert seen == repr([*scans, (child, str(tmp_path / "other"))])
 
 
 @pytest.mark.skipif(not hasattr(os, "geteuid"), reason="folders are told apart by their owner (POSIX)")
