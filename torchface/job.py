@@ -1303,27 +1303,34 @@ class _AtStepBoundary:
     read that blocks: the user's second Ctrl-C). A handler that is not a Python one (``SIG_IGN``: a parent that
     ignores the signal, ``SIG_DFL``, one set outside Python) is left as it is, and nothing is deferred outside the
     main thread (whose handlers only it runs) or outside the block: its previous handlers are put back as it ends,
-    and a signal that waited still ran there (after the loop's last step: its rows complete)."""
+    however it ends (an error, the second signal's interruption), and a signal that waited still runs there (after
+    the loop's last step: its rows complete; or over the error that ended the block, kept as its ``error``)."""
 
     def __init__(self) -> None:
         self._handlers: dict[int, Callable[[int, Any], Any]] = {}  # the handlers it runs, by signal
+        self._previous: dict[int, Any] = {}  # the handlers it puts back, by signal (a nested block: the outer's)
         self._installed = False
         self.pending: int | None = None  # the signal that waits for the step boundary
 
     def __enter__(self) -> "_AtStepBoundary":
         if threading.current_thread() is not threading.main_thread():
             return self
-        for signum in _DEFERRED_SIGNALS:
-            previous = signal.getsignal(signum)
-            outer = getattr(previous, "__self__", None)
-            if isinstance(outer, _AtStepBoundary):  # (a track_videos within another's loop: from its progress
-                # callback, or a handler it runs): the handler itself, not the outer loop's deferral, which would
-                # only mark the outer loop and let this one track on to its end
-                previous = outer._handlers[signum]
-            if callable(previous):  # (not SIG_IGN, SIG_DFL or None: a handler set outside Python)
-                self._handlers[signum] = previous
-                signal.signal(signum, self._defer)
-                self._installed = True
+        try:
+            for signum in _DEFERRED_SIGNALS:
+                previous = handler = signal.getsignal(signum)
+                outer = getattr(previous, "__self__", None)
+                if isinstance(outer, _AtStepBoundary):  # (a track_videos within another's loop: from its progress
+                    # callback, or a handler it runs): the handler itself, not the outer loop's deferral, which would
+                    # only mark the outer loop and let this one track on to its end (the outer's deferral put back
+                    # as this one ends: the outer loop defers again)
+                    handler = outer._handlers[signum]
+                if callable(handler):  # (not SIG_IGN, SIG_DFL or None: a handler set outside Python)
+                    self._handlers[signum], self._previous[signum] = handler, previous
+                    self._installed = True
+                    signal.signal(signum, self._defer)
+        except BaseException:  # (a signal's handler that raised before the block began: none left installed)
+            self.restore()
+            raise
         return self
 
     def _defer(self, signum: int, frame: Any) -> None:
@@ -1351,7 +1358,7 @@ class _AtStepBoundary:
         """Put the previous handlers back (a signal that waits still waits for :meth:`check`)."""
         if self._installed:
             self._installed = False
-            for signum, handler in self._handlers.items():
+            for signum, handler in self._previous.items():
                 signal.signal(signum, handler)
 
     def check(self, error: BaseException | None = None) -> None:
@@ -1370,9 +1377,9 @@ class _AtStepBoundary:
                     interruption.error = error  # type: ignore[attr-defined]
                 raise
 
-    def __exit__(self, *exc: object) -> None:
+    def __exit__(self, kind: type[BaseException] | None, error: BaseException | None, traceback: object) -> None:
         self.restore()
-        self.check()  # (one that arrived after the last check: run now, the loop over)
+        self.check(error)  # (one that arrived after the last check: run now, the loop over or stopped by ``error``)
 
 
 def _checkpoint_path(csv: Path) -> Path:
@@ -3127,141 +3134,139 @@ def _track_group(
         t_track0 = t_iter = time.perf_counter()
         t_idle = 0.0  # the loop's time in which every live stream replayed rows from its CSV (timings_s.batch_fps)
         t = 0
-        boundary.__enter__()
-        while True:
-            replays = [s.replay if s.replay is not None and t < len(s.replay) else None for s in live]  # this frame's
-            replaying = [r is not None for r in replays]  # (its row written already: drawn, not written again)
-            redrawn = [s for s, r in zip(live, replaying) if r and not s.retrack]  # (_Stream.t_replay)
-            held = [None if s.retrack else r for s, r in zip(live, replays)]  # (put into the state from the CSV)
-            if any(r is not None for r in held):
-                idx = [k for k, r in enumerate(held) if r is not None]
-                rows = np.stack([r[t] for r in held if r is not None])
-                params = state.params.clone()
-                own = _params_from_rows(rows, columns, layout).to(device=device, dtype=dtype)
-                replayed = own
-                ms = state.management
-                if ms is not None and ms.head_rotation is not None and ms.head_translation is not None:  # re-anchored
-                    # streams: their own frame (the offsets are set together)
-                    replayed = _rows_to_internal(own, ms.head_rotation[idx].to(dtype),
-                                                 ms.head_translation[idx].to(dtype), layout)  # fmt: skip
-                for i, k in enumerate(idx):  # the re-anchoring frame: the refined pose the run went on from
-                    kept = _anchor_params(live[k], t)
-                    if kept is not None:
-                        replayed[i] = torch.as_tensor(kept, dtype=replayed.dtype, device=replayed.device)
-                params[idx] = replayed
-                state = replace(state, params=params)
-                ended = [(k, r) for k, r in enumerate(held) if r is not None and t == len(r) - 1]
-                state = _with_replayed_loss(state, ended, columns, layout, run.tracker, live)
-                state = _with_replayed_motion(state, ended, columns, layout, run.tracker, live)
-            new_rows = result_rows(result, np.full(len(live), t), 1.0)
-            if config.smoothing is not None:  # (filled by _write_step)
-                new_rows = np.concatenate([new_rows, np.full((len(live), len(SMOOTH_COLUMNS)), math.nan)], axis=1)
-            for k, s in enumerate(live):  # a row tracked again: checked against the CSV's
-                r = replays[k]
-                if s.retrack and r is not None and not s.done:
-                    _check_retracked(s, new_rows[k], r[t], columns, t, len(r))
-            smooth = _write_step(model, state, result, frames, live, replaying, columns, new_rows, t, intr, edges,
-                                 normaliser, layout, live_mesh if config.meshes else None, config.redetect_below,
-                                 "dissim. conf" if config.tracker.template.enabled else "conf", config.smoothing,
-                                 smooth, config.keep_expression)  # fmt: skip
-            if joined is not None and t == restore_at:  # the state after this row, as the interrupted run had it
-                state, smooth, first_R, first_t = joined
-                idx = [k for k, s in enumerate(streams) if any(s is x for x in live)]
-                if len(idx) < len(streams):  # (a video that stopped while its rows were replayed: InputError)
-                    state, first_R, first_t = state.select(idx), first_R[idx], first_t[idx]
-                    smooth = None if smooth is None else smooth.select(idx)
-                _restore_streams(live)
-                joined = None
-            elif detector is not None and config.redetect_after > 0:
-                state = _maybe_redetect(model, config, state, frames, live, detector, intr, layout,
-                                        [r is not None and t < len(r) - 1 for r in held])
-            stop = boundary.pending is not None  # (Ctrl-C, SIGTERM: this state's checkpoint, then the handler)
-            if (stop or (t + 1) % CHECKPOINT_EVERY == 0) and t + 1 >= checkpoint_from:
-                if not _write_checkpoints(state, smooth, first_R, first_t, live, live_paths, t,
-                                          [not r for r in replaying]):  # fmt: skip
-                    checkpoint_from = sys.maxsize  # (warned: none for this batch)
-                else:  # the videos that ended before (their rows complete: a resume replays them, none tracked
-                    # again) keep no checkpoint of the batch they were in: resumed from it, alone, as the others have
-                    # newer ones of their own, their last rows were cut off and tracked again as another batch
-                    for s, p in zip(streams, paths):
-                        if s.done and s.error is None and all(s is not x for x in live):
-                            _checkpoint_path(p["csv"]).unlink(missing_ok=True)
-            if stop:  # (one that arrives after `stop` was read waits for the next step's checkpoint)
-                boundary.check()
-            nxt = []
-            for s in live:
-                if not s.done:
-                    try:
-                        if s.ahead:  # (the last one copied: a view would keep every frame read ahead, of
-                            s.last_frame = s.ahead.pop(0)  # every stream, for as long as a stream that ends holds it)
-                            if not s.ahead:
-                                s.last_frame = s.last_frame.clone()
-                        elif s.error is not None:  # the look-ahead's reading stopped at a bad frame
+        with boundary:  # (its handlers given back however the loop ends; a signal that waited run as it ends)
+            while True:
+                # this frame's:
+                replays = [s.replay if s.replay is not None and t < len(s.replay) else None for s in live]
+                replaying = [r is not None for r in replays]  # (its row written already: drawn, not written again)
+                redrawn = [s for s, r in zip(live, replaying) if r and not s.retrack]  # (_Stream.t_replay)
+                held = [None if s.retrack else r for s, r in zip(live, replays)]  # (put into the state from the CSV)
+                if any(r is not None for r in held):
+                    idx = [k for k, r in enumerate(held) if r is not None]
+                    rows = np.stack([r[t] for r in held if r is not None])
+                    params = state.params.clone()
+                    own = _params_from_rows(rows, columns, layout).to(device=device, dtype=dtype)
+                    replayed = own
+                    ms = state.management
+                    # re-anchored streams: their own frame (the offsets are set together)
+                    if ms is not None and ms.head_rotation is not None and ms.head_translation is not None:
+                        replayed = _rows_to_internal(own, ms.head_rotation[idx].to(dtype),
+                                                     ms.head_translation[idx].to(dtype), layout)  # fmt: skip
+                    for i, k in enumerate(idx):  # the re-anchoring frame: the refined pose the run went on from
+                        kept = _anchor_params(live[k], t)
+                        if kept is not None:
+                            replayed[i] = torch.as_tensor(kept, dtype=replayed.dtype, device=replayed.device)
+                    params[idx] = replayed
+                    state = replace(state, params=params)
+                    ended = [(k, r) for k, r in enumerate(held) if r is not None and t == len(r) - 1]
+                    state = _with_replayed_loss(state, ended, columns, layout, run.tracker, live)
+                    state = _with_replayed_motion(state, ended, columns, layout, run.tracker, live)
+                new_rows = result_rows(result, np.full(len(live), t), 1.0)
+                if config.smoothing is not None:  # (filled by _write_step)
+                    new_rows = np.concatenate([new_rows, np.full((len(live), len(SMOOTH_COLUMNS)), math.nan)], axis=1)
+                for k, s in enumerate(live):  # a row tracked again: checked against the CSV's
+                    r = replays[k]
+                    if s.retrack and r is not None and not s.done:
+                        _check_retracked(s, new_rows[k], r[t], columns, t, len(r))
+                smooth = _write_step(model, state, result, frames, live, replaying, columns, new_rows, t, intr, edges,
+                                     normaliser, layout, live_mesh if config.meshes else None, config.redetect_below,
+                                     "dissim. conf" if config.tracker.template.enabled else "conf", config.smoothing,
+                                     smooth, config.keep_expression)  # fmt: skip
+                if joined is not None and t == restore_at:  # the state after this row, as the interrupted run had it
+                    state, smooth, first_R, first_t = joined
+                    idx = [k for k, s in enumerate(streams) if any(s is x for x in live)]
+                    if len(idx) < len(streams):  # (a video that stopped while its rows were replayed: InputError)
+                        state, first_R, first_t = state.select(idx), first_R[idx], first_t[idx]
+                        smooth = None if smooth is None else smooth.select(idx)
+                    _restore_streams(live)
+                    joined = None
+                elif detector is not None and config.redetect_after > 0:
+                    state = _maybe_redetect(model, config, state, frames, live, detector, intr, layout,
+                                            [r is not None and t < len(r) - 1 for r in held])
+                stop = boundary.pending is not None  # (Ctrl-C, SIGTERM: this state's checkpoint, then the handler)
+                if (stop or (t + 1) % CHECKPOINT_EVERY == 0) and t + 1 >= checkpoint_from:
+                    if not _write_checkpoints(state, smooth, first_R, first_t, live, live_paths, t,
+                                              [not r for r in replaying]):  # fmt: skip
+                        checkpoint_from = sys.maxsize  # (warned: none for this batch)
+                    else:  # the videos that ended before (their rows complete: a resume replays them, none tracked
+                        # again) keep no checkpoint of the batch they were in: resumed from it, alone, as the others
+                        # have newer ones of their own, their last rows were cut off and tracked again as another batch
+                        for s, p in zip(streams, paths):
+                            if s.done and s.error is None and all(s is not x for x in live):
+                                _checkpoint_path(p["csv"]).unlink(missing_ok=True)
+                if stop:  # (one that arrives after `stop` was read waits for the next step's checkpoint)
+                    boundary.check()
+                nxt = []
+                for s in live:
+                    if not s.done:
+                        try:
+                            if s.ahead:  # (the last one copied: a view would keep every frame read ahead, of every
+                                s.last_frame = s.ahead.pop(0)  # stream, for as long as a stream that ends holds it)
+                                if not s.ahead:
+                                    s.last_frame = s.last_frame.clone()
+                            elif s.error is not None:  # the look-ahead's reading stopped at a bad frame
+                                s.done = True
+                            else:
+                                s.last_frame = _next_frame(s)
+                        except StopIteration:
                             s.done = True
-                        else:
-                            s.last_frame = _next_frame(s)
-                    except StopIteration:
-                        s.done = True
-                    except InputError as exc:  # this video stops; the others of the batch go on
-                        s.done, s.error = True, exc
-                    if s.done:  # its decoder (file, threads, buffers) not kept; its stream leaves the batch below
-                        s.reader.close()
-                nxt.append(s.frame())
-            now = time.perf_counter()  # (this frame's rows written, the next frames read)
-            for s in redrawn:
-                s.t_replay += now - t_iter
-            t_idle += (now - t_iter) if len(redrawn) == len(live) else 0.0
-            if progress is not None:  # (after reading: a video that has ended reports its frames as its total, so
-                # that it shows finished where its container's count was short, long or unknown)
-                elapsed = time.perf_counter() - t_track0
-                for k, s in enumerate(streams):
-                    total = s.frames if s.done and s.error is None else s.total
-                    fps = (s.tracked + s.tracked_again) / max(elapsed - s.t_replay, 1e-9)  # (timings_s.fps)
-                    progress(Progress(members[k], count, s.name, s.frames, total, fps, s.confidence))
-            if all(s.done for s in live):
-                break
-            t += 1
-            keep = [k for k, s in enumerate(live) if not s.done]
-            if len(keep) < len(live):  # videos ended: their streams leave the state, the others go on as a smaller
-                # batch (tracked as in the whole one; kept in it, an ended video's last frame was tracked again at
-                # every step until the longest video ended)
-                _keep_final(state, live, layout, [k for k in range(len(live)) if live[k].done])
-                if any(live[k].error is not None for k in range(len(live)) if k not in keep):  # (a video stopped:
-                    for s in live:  # the batch goes on smaller than the uninterrupted run's)
-                        s.from_checkpoint = "split" if s.from_checkpoint else False
-                state, result = state.select(keep), _select_result(result, keep)
-                smooth = None if smooth is None else smooth.select(keep)
-                first_R, first_t = first_R[keep], first_t[keep]
-                live[:] = [live[k] for k in keep]  # (in place: the recovery's callback reads this list)
-                live_paths, live_mesh = [live_paths[k] for k in keep], [live_mesh[k] for k in keep]
-                nxt = [nxt[k] for k in keep]
-            # (one video: its frame itself, not a copy stacked: 2 ms of CPU a 1080p frame; nothing changes a frame)
-            frames = (nxt[0].unsqueeze(0) if len(nxt) == 1 else torch.stack(nxt)).to(device=device, dtype=dtype)
-            t_iter = time.perf_counter()
-            if all(s.replay is not None and t < len(s.replay) and not s.retrack for s in live):
-                continue  # every live stream replays this frame from its CSV: nothing to track
-            current.frames, current.asked = frames, {}
-            state, result = managed_step(model, run.tracker, state, frames, recover, donate=True)
-            if result.start_failure is not None:  # (a detector's restart tried: why those it did not start failed)
-                for s, code in zip(live, result.start_failure.tolist()):
-                    held_here = s.replay is not None and t < len(s.replay) and not s.retrack  # (its row: the CSV's)
-                    if code != int(StartFailure.NONE) and not held_here:
-                        name = StartFailure(code).name
-                        s.restart_failures[name] = s.restart_failures.get(name, 0) + 1
-            _record_anchors(state, live, live_paths, first_R, first_t, layout, t)
-            now = time.perf_counter()  # (a step for the streams whose row t is tracked: for the others, not theirs)
-            for s in live:
-                if s.replay is not None and t < len(s.replay) and not s.retrack:
+                        except InputError as exc:  # this video stops; the others of the batch go on
+                            s.done, s.error = True, exc
+                        if s.done:  # its decoder (file, threads, buffers) not kept; its stream leaves the batch below
+                            s.reader.close()
+                    nxt.append(s.frame())
+                now = time.perf_counter()  # (this frame's rows written, the next frames read)
+                for s in redrawn:
                     s.t_replay += now - t_iter
-            t_iter = now
-        boundary.__exit__()
+                t_idle += (now - t_iter) if len(redrawn) == len(live) else 0.0
+                if progress is not None:  # (after reading: a video that has ended reports its frames as its total, so
+                    # that it shows finished where its container's count was short, long or unknown)
+                    elapsed = time.perf_counter() - t_track0
+                    for k, s in enumerate(streams):
+                        total = s.frames if s.done and s.error is None else s.total
+                        fps = (s.tracked + s.tracked_again) / max(elapsed - s.t_replay, 1e-9)  # (timings_s.fps)
+                        progress(Progress(members[k], count, s.name, s.frames, total, fps, s.confidence))
+                if all(s.done for s in live):
+                    break
+                t += 1
+                keep = [k for k, s in enumerate(live) if not s.done]
+                if len(keep) < len(live):  # videos ended: their streams leave the state, the others go on as a smaller
+                    # batch (tracked as in the whole one; kept in it, an ended video's last frame was tracked again at
+                    # every step until the longest video ended)
+                    _keep_final(state, live, layout, [k for k in range(len(live)) if live[k].done])
+                    if any(live[k].error is not None for k in range(len(live)) if k not in keep):  # (a video stopped:
+                        for s in live:  # the batch goes on smaller than the uninterrupted run's)
+                            s.from_checkpoint = "split" if s.from_checkpoint else False
+                    state, result = state.select(keep), _select_result(result, keep)
+                    smooth = None if smooth is None else smooth.select(keep)
+                    first_R, first_t = first_R[keep], first_t[keep]
+                    live[:] = [live[k] for k in keep]  # (in place: the recovery's callback reads this list)
+                    live_paths, live_mesh = [live_paths[k] for k in keep], [live_mesh[k] for k in keep]
+                    nxt = [nxt[k] for k in keep]
+                # (one video: its frame itself, not a copy stacked: 2 ms of CPU a 1080p frame; nothing changes a frame)
+                frames = (nxt[0].unsqueeze(0) if len(nxt) == 1 else torch.stack(nxt)).to(device=device, dtype=dtype)
+                t_iter = time.perf_counter()
+                if all(s.replay is not None and t < len(s.replay) and not s.retrack for s in live):
+                    continue  # every live stream replays this frame from its CSV: nothing to track
+                current.frames, current.asked = frames, {}
+                state, result = managed_step(model, run.tracker, state, frames, recover, donate=True)
+                if result.start_failure is not None:  # (a detector's restart tried: why those it did not start failed)
+                    for s, code in zip(live, result.start_failure.tolist()):
+                        held_here = s.replay is not None and t < len(s.replay) and not s.retrack  # (its row: the CSV's)
+                        if code != int(StartFailure.NONE) and not held_here:
+                            name = StartFailure(code).name
+                            s.restart_failures[name] = s.restart_failures.get(name, 0) + 1
+                _record_anchors(state, live, live_paths, first_R, first_t, layout, t)
+                now = time.perf_counter()  # (a step for the streams whose row t is tracked: for the others, not theirs)
+                for s in live:
+                    if s.replay is not None and t < len(s.replay) and not s.retrack:
+                        s.t_replay += now - t_iter
+                t_iter = now
         t_track = time.perf_counter() - t_track0
         _keep_final(state, live, layout, list(range(len(live))))
-    except BaseException as error:
-        boundary.restore()
+    except BaseException:  # (a signal that waited: its interruption, run as the loop's block ended, keeps the error)
         for s in batch:
             _abandon(s)
-        boundary.check(error)  # (a signal that waited: its interruption, over the error, which it keeps)
         raise
     summaries: list[VideoSummary | None] = []
     finished = 0

@@ -622,12 +622,13 @@ def test_sigterm_in_the_command_line_writes_its_checkpoint_and_exits_143(clips, 
 
 
 @pytest.mark.filterwarnings("ignore:SIGINT. stopping once:RuntimeWarning")
-def test_the_step_boundary_defers_python_handlers_in_the_main_thread_alone():
+def test_the_step_boundary_defers_python_handlers_in_the_main_thread_alone(monkeypatch):
     """``_AtStepBoundary``: SIGINT's Python handler waits for ``check`` (no KeyboardInterrupt where the signal
     arrives), a second signal runs it at once, the handlers are given back as the block ends (a signal that waited
     runs then), a caller's own handler is what runs (with the boundary's frame), ``SIG_IGN`` is left as it
-    is, a nested block runs the handler itself, an error passed to ``check`` is the interruption's ``error``, and
-    nothing changes outside the main thread (where ``signal.signal`` raises)."""
+    is, a nested block runs the handler itself and puts the outer block's deferral back as it ends, an error passed
+    to ``check`` or ending the block is the interruption's ``error``, a block interrupted as it begins leaves no
+    handler of its own, and nothing changes outside the main thread (where ``signal.signal`` raises)."""
     import os
     import signal
     import threading
@@ -692,17 +693,44 @@ def test_the_step_boundary_defers_python_handlers_in_the_main_thread_alone():
         signal.signal(signal.SIGINT, before)
     # a track_videos within another's loop (its progress callback): a signal ends the inner one at its boundary
     # (the outer loop's deferral had only marked the outer loop: the inner one tracked on to its end)
-    with _AtStepBoundary() as outer, _AtStepBoundary() as inner:
-        os.kill(os.getpid(), signal.SIGINT)
-        with pytest.raises(KeyboardInterrupt):
-            inner.check()
-        assert outer.pending is None
+    with _AtStepBoundary() as outer:
+        with _AtStepBoundary() as inner:
+            os.kill(os.getpid(), signal.SIGINT)
+            with pytest.raises(KeyboardInterrupt):
+                inner.check()
+            assert outer.pending is None
+        # and the outer loop defers again once the inner one has ended (Python's own handler was put back: a Ctrl-C
+        # stopped the outer loop mid-step, no checkpoint of that state)
+        assert signal.getsignal(signal.SIGINT) == outer._defer
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
     # an error that stopped the loop while a signal waited is kept by the interruption that replaces it
     error = OSError(28, "No space left on device")
     with pytest.raises(KeyboardInterrupt) as caught, _AtStepBoundary() as boundary:
         os.kill(os.getpid(), signal.SIGINT)
         boundary.check(error)
     assert caught.value.error is error
+    # the block ended by that error (the loop's `with`): the signal that waited runs as it ends, over the error
+    with pytest.raises(KeyboardInterrupt) as caught, _AtStepBoundary():
+        os.kill(os.getpid(), signal.SIGINT)
+        raise error
+    assert caught.value.error is error and signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    # a signal whose handler raises while the block begins (SIGTERM's, between the two handlers set): none is left
+    set_handler = signal.signal
+
+    def interrupted_at(signum, handler):
+        if signum == signal.SIGTERM:
+            raise KeyboardInterrupt
+        return set_handler(signum, handler)
+
+    before = signal.signal(signal.SIGTERM, own)  # (a Python handler: torchface track's)
+    try:
+        monkeypatch.setattr(signal, "signal", interrupted_at)
+        with pytest.raises(KeyboardInterrupt), _AtStepBoundary():
+            pass
+        monkeypatch.undo()
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler and signal.getsignal(signal.SIGTERM) is own
+    finally:
+        signal.signal(signal.SIGTERM, before)
     seen, failed = [], []
 
     def in_a_thread():
