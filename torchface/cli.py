@@ -542,17 +542,24 @@ def _path(text: str) -> Path:
     return Path(text)
 
 
-def _int_at_least(minimum: int) -> Callable[[str], int]:
+def _int_at_least(minimum: int, even: bool = False) -> Callable[[str], int]:
     """An argparse ``type``: an integer >= ``minimum`` (``--threads``, ``--max-batch``: 1;
-    ``--restart-after-unmatched``: 0), else a one-line usage error."""
+    ``--restart-after-unmatched``: 0), and even if asked (the scripts' frame sides), else a one-line usage error
+    (``must be an even integer >= 64, got '63'``). The scripts' ``_argtypes.integer`` is this one.
+
+    Example:
+        >>> _int_at_least(1)("3"), _int_at_least(32, even=True)("64")
+        (3, 64)
+    """
 
     def parse(text: str) -> int:
         try:
             value = int(text)
         except ValueError:
             value = minimum - 1
-        if value < minimum:
-            raise argparse.ArgumentTypeError(f"must be an integer >= {minimum}, got {text!r}")
+        if value < minimum or (even and value % 2):
+            kind = "an even integer" if even else "an integer"
+            raise argparse.ArgumentTypeError(f"must be {kind} >= {minimum}, got {text!r}")
         return value
 
     return parse
