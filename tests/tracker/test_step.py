@@ -1481,6 +1481,7 @@ def test_pyramid_for_faces_adds_a_level_per_doubling_of_the_face():
     assert pyramid_for_faces(base, faces(570.0), (1080, 1920)).num_levels == 5
     assert pyramid_for_faces(base, faces(1140.0), (2160, 3840)).num_levels == 6
     assert pyramid_for_faces(base, faces(1140.0, 380.0), (2160, 3840)).num_levels == 4  # the smallest face decides
+    assert pyramid_for_faces(base, faces(2300.0), (2160, 3840)).num_levels == 6  # 6 at most (MIN_CROP_PX; 7 without)
     # as many as the frame allows (check_initialise_inputs: 3 * 2**(L - 2) pixels a side)
     assert pyramid_for_faces(base, faces(1140.0), (40, 3840)).num_levels == 5  # 24 <= 40 < 48
     assert pyramid_for_faces(base, faces(1140.0), (20, 3840)).num_levels == 4  # 12 <= 20 < 24

@@ -1128,10 +1128,11 @@ def pyramid_for_faces(
     if faces.numel() == 0:
         return config
     extra = max(0, math.floor(math.log2(float(faces.min()) / PYRAMID_REFERENCE_FACE_PX) + 0.5))
-    # pyr_down's 3 pixels a side, in the frame and in the step's crop, which is at least MIN_CROP_PX a side
-    # (face_crop) whatever the face: a failed start holding a degenerate fit is cropped so, and levels past what that
-    # crop allows failed the next step deep inside ("images must be (B, C, H, W) with H, W >= 3, got (1, 1, 2, 2)":
-    # landmarks 255 times too large, on 160x120 frames, gave 7 levels)
+    # pyr_down's 3 pixels a side in the frame, and at most the levels a MIN_CROP_PX crop makes (6). The latter no
+    # longer guards the step (landmarks 255 times too large on 160x120 frames once gave 7 levels, and the crop of the
+    # failed start crashed in pyr_down; face_crop now enlarges its crop to 3 * 2**(L - 2) a side), but it is not
+    # redundant: it is the documented ceiling, without which faces over 2036 px (a 4K close-up) get 7 levels and a
+    # far too large landmark box up to the frame's limit (10 at 1080p): 462 of 990 frame x face sizes differ
     while extra > 0 and min(*size, MIN_CROP_PX) < 3 * 2 ** (config.num_levels + extra - 2):
         extra -= 1
     return add_coarser_levels(config, extra)
