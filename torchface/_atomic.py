@@ -123,7 +123,10 @@ def folder_locked(folder: str | os.PathLike[str]) -> Iterator[None]:
 
 
 def _running(pid: int) -> bool:
-    """Whether process ``pid`` may still be running on this machine (True where it cannot be told)."""
+    """Whether process ``pid`` may still be running on this machine (True where it cannot be told: not POSIX, a
+    ``pid <= 0``, which ``os.kill`` reads as a process group, a pid too large for it; and this process's own). Its
+    near-twin :func:`torchface.job._alive`, for ``torchface track``'s output locks, tells on Windows too and asks
+    ``os.kill`` of any pid: kept apart, as a partial file left is harmless while a lock left refuses every run."""
     if os.name != "posix" or pid <= 0 or pid == os.getpid():  # (os.kill(0, ...) signals the process group)
         return True
     try:

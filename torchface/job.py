@@ -841,7 +841,11 @@ def _lock_owner(path: Path) -> tuple[int, str] | None:
 
 
 def _alive(pid: int) -> bool:
-    """Whether process ``pid`` of this host exists (one of another user's too; on Windows :func:`_alive_windows`)."""
+    """Whether process ``pid`` of this host exists (one of another user's too; on Windows :func:`_alive_windows`).
+    Unlike its near-twin :func:`torchface._atomic._running` (True where it cannot tell: on Windows, a lock of a run
+    that ended would never be taken over, every later run refused), it tells on Windows too, and asks ``os.kill`` of
+    the lock's pid as it is: 0 and -1 (a process group, every process) are True, another negative one False, and one
+    too large for ``os.kill`` raises ``OverflowError`` (a damaged lock file)."""
     if sys.platform == "win32":  # (os.kill(pid, 0) there sends CTRL_C_EVENT, or terminates the process)
         return _alive_windows(pid)
     try:
