@@ -449,11 +449,11 @@ class _Claims:
             # started, which leaves by os._exit, without atexit: the folders of datasets made in a torch.multiprocessing
             # rank were left; and only in the process that made it)
             multiprocessing.util.Finalize(self, shutil.rmtree, (self.folder, True), exitpriority=0)
-            where = (owner[2], os.path.dirname(self.folder)) if owner is not None else None
-            if owner is not None and where not in _SCANNED:  # (once a process and folder: a scan cost 0.65 ms
-                _SCANNED.add(where)  # a dataset, a copy or a worker's pickle, with 400 entries in /tmp)
+            temp = os.path.dirname(self.folder)
+            if owner is not None and (owner[2], temp) not in _SCANNED:  # (once a process and folder: a scan cost
+                _SCANNED.add((owner[2], temp))  # 0.65 ms a dataset, a copy or a worker's pickle, 400 entries in /tmp)
                 try:
-                    _remove_stale_claims(where[1], owner)
+                    _remove_stale_claims(temp, owner)
                 except Exception:  # (a cleanup of others' leftovers: never the dataset's failure)
                     pass
 
