@@ -1052,7 +1052,7 @@ def check_initialise_inputs(
         raise ValueError(f"weights must be ({B}, {K}), got {tuple(weights.shape)}")
     if weights is not None:
         check_holds_data(weights, "weights")
-    check_landmark_values(landmarks_px, weights)  # (a row with one coordinate alone; NaN, infinite, negative weights)
+    check_landmark_values(landmarks_px, weights)  # (infinite or half-NaN rows; NaN, infinite, negative weights)
     check_pixel_landmarks(landmarks_px, frames.shape[-1], frames.shape[-2], weights)  # (not MediaPipe's [0, 1])
     _unit_weights(config, model.num_animation, frames)  # their count, before any work
 
@@ -1097,8 +1097,9 @@ def pyramid_for_faces(
             instead of three).
 
     Raises:
-        TypeError, ValueError: landmarks or weights of the wrong type or shape, a landmark row with one coordinate
-            alone, NaN, infinite or negative weights (:func:`~torchface.tracker.fit.check_landmark_values`).
+        TypeError, ValueError: landmarks or weights of the wrong type or shape, a landmark row with an infinite
+            coordinate or one coordinate NaN alone, NaN, infinite or negative weights
+            (:func:`~torchface.tracker.fit.check_landmark_values`).
 
     Returns:
         ``config`` itself, or a copy with more ``num_levels`` and ``iterations``.
@@ -1252,8 +1253,8 @@ def initialise(
         model: the face model.
         config: :class:`TrackerConfig`.
         frames: ``(B, 3, H, W)`` (or gray ``(B, 1, H, W)``) first frames, float in [0, 1].
-        landmarks_px: ``(B, K, 2)`` the model's landmarks in pixels (a NaN row = missing; a row with one coordinate
-            alone is refused: :func:`~torchface.tracker.fit.check_landmark_values`). A stream with fewer than
+        landmarks_px: ``(B, K, 2)`` the model's landmarks in pixels (a NaN row = missing; an infinite coordinate or
+            one NaN alone is refused: :func:`~torchface.tracker.fit.check_landmark_values`). A stream with fewer than
             :data:`~torchface.tracker.fit.MIN_FIT_LANDMARKS` (4) of positive weight (all NaN: no face found) fails
             alone, FAILED at :func:`~torchface.tracker.fit.fit_landmarks`' placeholder pose.
         intrinsics: camera of ``frames``.
