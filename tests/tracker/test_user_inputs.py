@@ -209,11 +209,16 @@ def test_intrinsics_that_look_mixed_up_are_named_and_tracked(clip):
     from torchface.geometry import Intrinsics
 
     frames, lm = clip
+    from torchface.geometry.camera import MixedUpIntrinsics
+
+    given = Intrinsics(160, 120, 160.0, 79.5, 160.0, 59.5)
     with pytest.warns(UserWarning, match=r"^intrinsics fx=160, fy=79.5, cx=160, cy=59.5 for a 160x120 frame look "
                                          r"mixed up: OpenCV's matrix order .*Intrinsics\(160, 120, fx=160, fy=160, "
-                                         r"cx=79.5, cy=59.5\)"):
-        result = FaceTracker(CFG).initialise(frames[:1], lm[None], Intrinsics(160, 120, 160.0, 79.5, 160.0, 59.5))
+                                         r"cx=79.5, cy=59.5\)") as warned:
+        result = FaceTracker(CFG).initialise(frames[:1], lm[None], given)
     assert result.status.shape == (1,)
+    # (a MixedUpIntrinsics, holding the camera: torchface track tells its --focal from it)
+    assert isinstance(warned[0].message, MixedUpIntrinsics) and warned[0].message.intrinsics == given
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         FaceTracker(CFG).initialise(frames[:1], lm[None], Intrinsics(160, 120, 170.0, 160.0, 70.0, 50.0))

@@ -217,6 +217,16 @@ def _crop_fits(w: int, h: int, fx: float, fy: float, cx: float, cy: float) -> bo
         and abs(cy - (h - 1) / 2) <= PLAUSIBLE_OFF_AXIS * fy
 
 
+class MixedUpIntrinsics(UserWarning):
+    """The warning :func:`~torchface.tracker.step.initialise` gives with :func:`mixed_up_intrinsics`' hint (a
+    ``UserWarning``); ``intrinsics`` is the camera it is of, for a front end that speaks of its own options
+    (``torchface track --focal``) rather than of :class:`Intrinsics`' arguments."""
+
+    def __init__(self, message: str, intrinsics: Intrinsics) -> None:
+        super().__init__(message)
+        self.intrinsics = intrinsics
+
+
 def mixed_up_intrinsics(intrinsics: Intrinsics) -> str | None:
     """A hint, as one line, where a frame's camera looks like a mix-up of the constructor's arguments, with the
     likely fix; None for a plausible camera (and for entries that are tensors: a calibration being optimised).

@@ -34,7 +34,7 @@ from torchface.conventions import MEDIAPIPE_MESH_HINT, MEDIAPIPE_MESH_POINT_COUN
 from torchface.geometry._checks import (
     check_bool, check_choice, check_int, check_intrinsics, check_ints, check_number, check_reals,
 )
-from torchface.geometry.camera import Intrinsics, mixed_up_intrinsics
+from torchface.geometry.camera import Intrinsics, MixedUpIntrinsics, mixed_up_intrinsics
 from torchface.geometry.projection import project_points
 from torchface.geometry.so3 import axis_angle_to_matrix, matrix_to_axis_angle, matrix_to_euler
 from torchface.model.face_model import FaceModel
@@ -1023,7 +1023,7 @@ def check_initialise_inputs(
     mixed_up = mixed_up_intrinsics(intrinsics)
     if mixed_up is not None:  # (implausible, not impossible: tracked as given, with a word; from this line, so that
         # Python's filter shows it once, not once per entry point that checks: FaceTracker, initialise_managed, ...)
-        warnings.warn(mixed_up, UserWarning, stacklevel=1)
+        warnings.warn(MixedUpIntrinsics(mixed_up, intrinsics), stacklevel=1)  # (a UserWarning)
     B, K = frames.shape[0], model.num_landmarks
     if B == 0:
         raise ValueError("frames must hold at least one stream (B >= 1), got B = 0")
