@@ -121,7 +121,7 @@ def _check_real(value: object, name: str, extra: str) -> float:
         number = value.item()  # (a bool or complex one: a bool or complex, refused)
         if isinstance(number, bool) or not isinstance(number, numbers.Real):
             raise TypeError(f"{name} must be a real number{extra}, got {type(value).__name__} {value!r}")
-        return number
+        return cast(float, number) if type(number) in (int, float) else float(number)
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
         raise TypeError(f"{name} must be a real number{extra}, got {type(value).__name__} {value!r}")
     return cast(float, value) if type(value) in (int, float) else float(value)
