@@ -178,18 +178,26 @@ def test_real_settings_refuse_other_types_as_type_errors_naming_them():
     """A string for a number was refused with a message naming no setting (``TemplateConfig(texture_blend="0.5")``:
     "'<' not supported between instances of 'int' and 'str'", ``TrackerConfig(crop_margin="0.2")``: "must be real
     number, not str"), as a ValueError (``robust_c="4.685"``), or taken (``SolverConfig(step_tolerance="1e-8")``,
-    ``LayerConfig(margin="0.05")``, ``FaceTrackingConfig(focal="300")``); a bool was taken as 0 or 1."""
+    ``LayerConfig(margin="0.05")``, ``FaceTrackingConfig(focal="300")``); a bool was taken as 0 or 1. A 0-d real
+    tensor is taken as its Python number (it was "must be a real number, got Tensor" where a Python number was taken;
+    bool and complex ones, and a 1-element 1-D one, are refused)."""
     checked = 0
     for cls, base in _settings().items():
         for name, optional in _reals(cls).items():
-            bads: tuple = ("0.5", True, np.bool_(False), [0.5]) + (() if optional else (None,))
+            bads: tuple = ("0.5", True, np.bool_(False), [0.5], torch.tensor(True), torch.tensor(0.5 + 0j),
+                           torch.tensor([0.5])) + (() if optional else (None,))
             for bad in bads:
                 with pytest.raises(TypeError, match=rf"\b{name} must be a real number"):
                     cls(**{**base, name: bad})
             value = getattr(cls(**base), name)
-            if value is not None:  # a numpy number is taken, as a Python float
+            if value is not None:  # a numpy number is taken, as a Python float; a 0-d tensor as its Python number
                 got = getattr(cls(**{**base, name: np.float32(value)}), name)
                 assert type(got) is float and got == float(np.float32(value)), (cls.__name__, name)
+                got = getattr(cls(**{**base, name: torch.tensor(value, dtype=torch.float64)}), name)
+                assert type(got) is float and got == value, (cls.__name__, name)
+                if type(value) is int:  # (an integer tensor: an int, as an int stays one)
+                    got = getattr(cls(**{**base, name: torch.tensor(value)}), name)
+                    assert type(got) is int and got == value, (cls.__name__, name)
             checked += 1
     assert checked >= 60
 

@@ -383,7 +383,7 @@ def _warnings_as_lines(display: ProgressDisplay | None) -> Iterator[None]:
         if file is not None or not os.path.abspath(filename).startswith(package):
             previous(message, category, filename, lineno, file, line)
             return
-        text = " ".join(str(message).split())
+        text = " ".join(str(_focal_hint(message)).split())
         text = f"torchface: warning: {text.removeprefix('torchface: ')}"
         if display is not None and not display.broken:
             display.note(text)
@@ -397,11 +397,28 @@ def _warnings_as_lines(display: ProgressDisplay | None) -> Iterator[None]:
         warnings.showwarning = previous
 
 
+def _focal_hint(message: object) -> object:
+    """A :class:`~torchface.geometry.camera.MixedUpIntrinsics` warning of the camera ``torchface track`` makes
+    (``Intrinsics.default(W, H, --focal)``: square pixels, the principal point the frames' centre, so a focal length
+    under 5 % of the frame is all it can find) as what to type, ``--focal``, not ``Intrinsics``' arguments (which
+    the command line takes none of); any other ``message`` as it is."""
+    camera = sys.modules.get("torchface.geometry.camera")  # (no import here: a warning's line may be written from a
+    # signal handler; the warning's class is loaded where one was made)
+    cam = message.intrinsics if camera is not None and isinstance(message, camera.MixedUpIntrinsics) else None
+    if cam is None or not (cam.fx == cam.fy and (cam.cx, cam.cy) == ((cam.width - 1) / 2, (cam.height - 1) / 2)):
+        return message
+    f, side = float(cam.fx), max(cam.width, cam.height)
+    units = f" (a focal length in normalised units, f / max(W, H)? --focal {f * side:g})" if f < 10 else ""
+    return (f"--focal {f:g} is under 5 % of the {cam.width}x{cam.height} frames' larger side (a field of view over "
+            f"175 degrees), tracked as given: --focal is in pixels{units}; without --focal it is max(W, H), {side}")
+
+
 def _run_track(
     videos, out_dir, landmarks, detector, focal, device, resume, meshes, quiet, convert=False, lookahead=False,
     online_refine=True, max_batch=128, restart_after_unmatched=0, motion_prediction=0.0, model=None, smooth=False,
     keep_going=False, keep_expression=False,
 ) -> int:
+    from torchface.geometry._checks import check_number
     from torchface.job import InputSkipped, JobConfig, VideosStopped, track_videos
     from torchface.template.management import TemplateConfig
     from torchface.tracker.lookahead import LookaheadConfig
@@ -415,6 +432,8 @@ def _run_track(
         tracker = replace(tracker, template=replace(tracker.template, restart_after_unmatched=restart_after_unmatched))
     if motion_prediction:
         tracker = replace(tracker, motion_prediction=motion_prediction)
+    if focal is not None:  # (named as typed: JobConfig's message says "focal")
+        check_number(focal, "--focal", "(0, inf)", unit="pixels")
     config = JobConfig(
         out_dir=out_dir, landmarks=tuple(landmarks or ()), detector=detector, focal=focal, device=device,
         resume=resume, convert=convert, meshes=meshes, lookahead=LookaheadConfig() if lookahead else None,

@@ -4064,3 +4064,24 @@ def test_a_detector_restart_that_fails_is_counted_in_the_sidecar(clip, tmp_path,
         assert side["detector_calls"] > failures["OUTSIDE_FRAME"]
         cols, rows = read_track_csv(output_paths(tmp_path / name, "half")["csv"])
         assert rows.shape == (6, len(cols)) and not rows[:, cols.index("success")].any()
+
+
+def test_a_focal_option_too_small_is_told_as_the_option_typed(clip, tmp_path, capsys):
+    """``--focal 0.5`` (a focal length in normalised units for one in pixels) was told of as ``Intrinsics``' numbers
+    ("check the order, Intrinsics(width, height, fx, fy, cx, cy), or use Intrinsics.from_matrix(K, 160, 120)"), a
+    Python class the command line user never met: it is told as ``--focal``, what to type instead, in one line; the
+    video is tracked as given, as the Python API does (a warning). A refused one names ``--focal`` too (it said
+    "focal", JobConfig's field)."""
+    video, lm, _ = clip
+    short = _short_npy(video, tmp_path / "short.npy", 2)
+    out = tmp_path / "out"
+    args = ["track", str(short), "--out", str(out), "--landmarks", str(lm), "--quiet", "--no-online-refine"]
+    assert main(args + ["--focal", "0.5"]) == 3  # (tracked as given: a face seen so is no pose, no tracked frame)
+    err = capsys.readouterr().err
+    said = [line for line in err.splitlines() if line.startswith("torchface: warning: ")]
+    assert said[:1] == ["torchface: warning: --focal 0.5 is under 5 % of the 160x120 frames' larger side (a field of "
+                        "view over 175 degrees), tracked as given: --focal is in pixels (a focal length in normalised "
+                        "units, f / max(W, H)? --focal 80); without --focal it is max(W, H), 160"], err
+    assert "Intrinsics" not in err
+    _assert_clean_failure(main(args + ["--focal", "-5"]), capsys, tmp_path / "nothing",
+                          "--focal must be a finite number > 0 (pixels), got -5.0")  # fmt: skip

@@ -144,15 +144,25 @@ def test_from_matrix_reads_opencvs_calibration_matrix_and_refuses_what_no_camera
                                    r"principal point \(319.5, 239.5\)"),
         ((1000.0, 400.0, 319.5, 239.5), r"are implausible \(fx more than 1.25 times fy or fy more than 2 times fx"),
         ((400.0, 900.0, 319.5, 239.5), r"are implausible \(fx more than 1.25 times fy"),  # wide pixels: over 2
-        ((300.0, 300.0, 900.0, 240.0), r"are implausible .*a principal point outside the frame"),
+        ((300.0, 300.0, 1300.0, 240.0), r"are implausible .*or the frame's centre more than 2 focal lengths from the "
+                                         r"principal point\)"),  # (980 pixels off the centre: 73 degrees)
+        ((600.0, 600.0, 640.0, 480.0), r"put the principal point at \(640, 480\), the frame's size: a centred camera's "
+                                       r"principal point is \(319.5, 239.5\)"),
+        ((1500.0, 1500.0, 959.5, 719.5), r"the camera of a 1920x1440 frame \(its centre the principal point\), not "
+                                         r"scaled with these frames\? Likely meant: Intrinsics\(640, 480, fx=500, "
+                                         r"fy=500, cx=319.5, cy=239.5\), intrinsics.scaled\(0.333333\)"),
         ((600.0, 600.0, 319.5, 239.5), None),
+        ((300.0, 300.0, 900.0, 240.0), None),  # a crop of a larger frame: its principal point off the crop (62 deg.)
+        ((5000.0, 5000.0, -3000.0, 3500.0), None),  # a telephoto frame's crop, many crop widths off its centre
+        ((1500.0, 1500.0, 1200.0, 719.5), None),  # off the frame, not a larger frame's centre (scales 3.75 and 3)
         ((900.0, 880.0, 100.0, 400.0), None),  # off-centre, inside the frame: plausible (crops of a sensor exist)
         ((300.0, 300.0, -0.5, 479.5), None),  # at the frame's corner pixel's edge
         ((1000.0, 850.0, 319.5, 239.5), None),  # pixels 1.18 from square: within PLAUSIBLE_ASPECT
         ((600.0 / 1.42, 600.0, 319.5, 239.5), None),  # PAL 16:9 DV's wide pixels (HDV's 4/3 too): were "implausible"
     ],
-    ids=["opencv-order", "swapped", "normalised", "corner", "aspect", "wide-pixels-2", "outside", "centred",
-         "off-centre", "edge", "non-square", "anamorphic"],
+    ids=["opencv-order", "swapped", "normalised", "corner", "aspect", "wide-pixels-2", "far-outside", "size",
+         "not-scaled", "centred", "crop", "telephoto-crop", "off-frame", "off-centre", "edge", "non-square",
+         "anamorphic"],
 )
 def test_mixed_up_intrinsics_are_named_with_the_likely_fix(given, said) -> None:
     """A camera whose numbers read as a mix-up of the constructor's arguments (OpenCV's matrix order, the principal
@@ -168,3 +178,19 @@ def test_mixed_up_intrinsics_are_named_with_the_likely_fix(given, said) -> None:
         assert hint is not None and re.search(said, hint), hint
     K = torch.tensor(float(given[0]), requires_grad=True)  # (a calibration being optimised: no word)
     assert mixed_up_intrinsics(Intrinsics(640, 480, K, *given[1:])) is None  # type: ignore[arg-type]
+
+
+def test_a_principal_point_outside_the_frame_alone_is_a_crop_not_a_mix_up() -> None:
+    """Every principal point outside the frame was "implausible": a crop of a larger frame, which keeps that frame's
+    principal point, was warned of at each start. It is plausible unless the frame's centre lies more than
+    PLAUSIBLE_OFF_AXIS (2) focal lengths from it; the mix-ups it told still are told (a square frame's focal
+    lengths and principal point swapped: the principal point outside alone showed it)."""
+    from torchface.geometry.camera import PLAUSIBLE_OFF_AXIS, mixed_up_intrinsics
+
+    assert PLAUSIBLE_OFF_AXIS == 2.0
+    hint = mixed_up_intrinsics(Intrinsics(480, 480, 239.5, 239.5, 600.0, 600.0))
+    assert hint is not None and "swapped (cx, cy, fx, fy)? Likely meant: Intrinsics(480, 480, fx=600, fy=600, " \
+        "cx=239.5, cy=239.5)" in hint, hint
+    for cx, cy in ((-250.0, 100.0), (500.0, 400.0), (127.5 - 400.0, 127.5)):  # (the last: 2 focal lengths off)
+        assert mixed_up_intrinsics(Intrinsics(256, 256, 200.0, 200.0, cx, cy)) is None, (cx, cy)
+    assert "are implausible" in str(mixed_up_intrinsics(Intrinsics(256, 256, 200.0, 200.0, 127.5 - 401.0, 127.5)))

@@ -490,6 +490,24 @@ def test_errors(model, layout):
         build_normalised_layout(model, 32, distance_mm=float("inf"))
     with pytest.raises(TypeError, match=r"^margin must be a real number, got str '0.05'"):  # (was taken)
         build_normalised_layout(model, 32, margin="0.05")  # type: ignore[arg-type]
+    # 0-d real tensors are numbers, as before session 59's checks ("must be a real number, got Tensor"): the same
+    # layout and face as their Python numbers; NaN, out of range, bool and complex still refused
+    zero_d = build_normalised_layout(model, 12, margin=torch.tensor(0.25), distance_mm=torch.tensor(2000))
+    plain = build_normalised_layout(model, 12, margin=0.25, distance_mm=2000)
+    assert zero_d.margin == plain.margin and torch.equal(zero_d.pixel_index, plain.pixel_index)
+    assert torch.equal(zero_d.translation, plain.translation)
+    settings = {"depth_tolerance": 0.125, "min_facing_cos": 0.25}  # (exact in float32)
+    want = call(**settings)
+    got = call(**{k: torch.tensor(v) for k, v in settings.items()})
+    assert torch.equal(got.image, want.image) and torch.equal(got.mask, want.mask)
+    assert NormalisedFace(model, size=G, depth_tolerance=torch.tensor(0.1)).depth_tolerance == float(torch.tensor(0.1))
+    with pytest.raises(ValueError, match=r"^min_facing_cos must be in \[0, 1\), got nan$"):
+        call(min_facing_cos=torch.tensor(float("nan")))
+    with pytest.raises(ValueError, match=r"^margin must be in \[0, 0.45\] \(a fraction of the image size\), got 0.5$"):
+        build_normalised_layout(model, 12, margin=torch.tensor(0.5, dtype=torch.float64))
+    for bad in (torch.tensor(True), torch.tensor(0.1 + 0j), torch.tensor([0.1])):
+        with pytest.raises(TypeError, match=r"^depth_tolerance must be a real number, got Tensor tensor\("):
+            call(depth_tolerance=bad)
     with pytest.raises(TypeError, match="FaceModel"):
         build_normalised_layout("candide", 32)
     with pytest.raises(ValueError, match="mask must be"):

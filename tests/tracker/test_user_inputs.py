@@ -112,10 +112,11 @@ def test_landmarks_that_fail_alone_as_before(clip, landmarks, status):
 
 
 def test_a_landmark_row_with_one_coordinate_alone_is_refused_by_every_entry_point(clip):
-    """A row with one coordinate NaN (or infinite) and the other finite was taken as a missing point by
-    ``FaceTracker.initialise`` (and ``fit_landmarks``, ``pyramid_for_faces``) and refused by ``torchface track``,
-    ``NormaliseFaces`` and ``track_sequence``. One rule now, in one function that all of them call: refused, naming
-    the row (and the stream of a batch), saying how a missing point is marked. A NaN row stays a missing point."""
+    """A row with one coordinate NaN (or infinite) and the other finite, and a row of infinite coordinates, were taken
+    as a missing point by ``FaceTracker.initialise`` (and ``fit_landmarks``, ``pyramid_for_faces``) and refused by
+    ``torchface track``, ``NormaliseFaces`` and ``track_sequence``. One rule now, in one function that all of them
+    call (landmark_rows_problem): refused, naming the row (and the stream of a batch), saying how a missing point is
+    marked. A NaN row stays a missing point."""
     from torchface.io.landmarks import missing_points_problem
     from torchface.tracker import fit_landmarks, pyramid_for_faces
     from training_hooks.transforms import FaceTrackingConfig, NormaliseFaces
@@ -140,9 +141,24 @@ def test_a_landmark_row_with_one_coordinate_alone_is_refused_by_every_entry_poin
         NormaliseFaces(FaceTrackingConfig(face_size=32))(frames[:1], half)
     inf = lm.clone()
     inf[7, 1] = float("inf")
-    with pytest.raises(ValueError, match=r"^landmarks_px: landmark\(s\) \[7\] of stream 1 have one coordinate NaN "
-                                         r"or infinite"):
+    infinite = (r"^landmarks_px: landmark\(s\) \[7\] of stream 1 are infinite \(a missing point is a NaN row\): most "
+                r"likely a bug upstream \(a division by zero, an overflow\); give a point you do not trust weight 0$")
+    with pytest.raises(ValueError, match=infinite):
         tracker.initialise(frames[:2], torch.stack([lm, inf]))
+    # a row of infinite coordinates too (it was taken as a missing point here, and refused by torchface track,
+    # NormaliseFaces and track_sequence): every entry point refuses it, in the same words
+    inf[7] = float("-inf")
+    with pytest.raises(ValueError, match=infinite) as refused:
+        tracker.initialise(frames[:2], torch.stack([lm, inf]))
+    with pytest.raises(ValueError, match=infinite):
+        fit_landmarks(tracker.model, torch.stack([lm, inf]), _camera())
+    with pytest.raises(ValueError, match=infinite):
+        pyramid_for_faces(CFG, torch.stack([lm, inf]), (H, W))
+    rule = str(refused.value).removeprefix("landmarks_px: ").replace(" of stream 1", "").replace(
+        "; give a point you do not trust weight 0", "")
+    assert missing_points_problem(inf.double().numpy()) == rule
+    with pytest.raises(ValueError, match=f"^landmarks: {re.escape(rule)}$"):
+        NormaliseFaces(FaceTrackingConfig(face_size=32))(frames[:1], inf)
     missing = lm.clone()
     missing[5] = float("nan")  # both coordinates: a missing point, as before
     assert int(tracker.initialise(frames[:1], missing[None]).status) == CONVERGED
@@ -193,11 +209,16 @@ def test_intrinsics_that_look_mixed_up_are_named_and_tracked(clip):
     from torchface.geometry import Intrinsics
 
     frames, lm = clip
+    from torchface.geometry.camera import MixedUpIntrinsics
+
+    given = Intrinsics(160, 120, 160.0, 79.5, 160.0, 59.5)
     with pytest.warns(UserWarning, match=r"^intrinsics fx=160, fy=79.5, cx=160, cy=59.5 for a 160x120 frame look "
                                          r"mixed up: OpenCV's matrix order .*Intrinsics\(160, 120, fx=160, fy=160, "
-                                         r"cx=79.5, cy=59.5\)"):
-        result = FaceTracker(CFG).initialise(frames[:1], lm[None], Intrinsics(160, 120, 160.0, 79.5, 160.0, 59.5))
+                                         r"cx=79.5, cy=59.5\)") as warned:
+        result = FaceTracker(CFG).initialise(frames[:1], lm[None], given)
     assert result.status.shape == (1,)
+    # (a MixedUpIntrinsics, holding the camera: torchface track tells its --focal from it)
+    assert isinstance(warned[0].message, MixedUpIntrinsics) and warned[0].message.intrinsics == given
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         FaceTracker(CFG).initialise(frames[:1], lm[None], Intrinsics(160, 120, 170.0, 160.0, 70.0, 50.0))
@@ -215,7 +236,8 @@ def test_a_detector_answering_normalised_coordinates_is_named(clip):
     restart, which a detector answering pixels for other streams (two detectors behind one) raised too whenever the
     normalised streams restarted alone. Now such a stream fails its restart alone: LOST, its result's
     ``start_failure`` says NORMALISED_LANDMARKS, and a ``RuntimeWarning`` says how to make pixels. One answering
-    pixels starts it (even with a row of one coordinate alone, taken as missing with a ``RuntimeWarning``)."""
+    pixels starts it (even with a row of one coordinate alone or an infinite one, taken as missing with a
+    ``RuntimeWarning``)."""
     frames, lm = clip
     nan = torch.full((1, 68, 2), float("nan"))
     tracker = FaceTracker(CFG, detector=lambda batch: normalised(lm)[None].expand(batch.shape[0], -1, -1).clone())
@@ -235,9 +257,11 @@ def test_a_detector_answering_normalised_coordinates_is_named(clip):
     # a restart never raises)
     half = lm.clone()
     half[5, 1] = float("nan")
+    half[9] = float("inf")  # (an infinite row too: refused where a user gives it, missing here)
     tracker = FaceTracker(CFG, detector=lambda batch: half[None].expand(batch.shape[0], -1, -1).clone())
     tracker.initialise(frames[:1], nan)
-    with pytest.warns(RuntimeWarning, match=r"^the detector's landmark\(s\) \[5\] have one coordinate NaN .*: those "
+    with pytest.warns(RuntimeWarning, match=r"^the detector's landmark\(s\) \[9\] are infinite \(a missing point is a "
+                                            r"NaN row\).*; landmark\(s\) \[5\] have one coordinate NaN .*: those "
                                             r"points are taken as missing$"):
         statuses = [int(tracker(frames[t : t + 1]).status) for t in (1, 2, 1, 2, 1, 2)]
     assert statuses[0] == LOST and CONVERGED in statuses

@@ -271,7 +271,8 @@ def test_landmarks_with_too_few_points_half_nan_rows_or_infinite_values_are_refu
         (half, r"landmark\(s\) \[12, 40\] have one coordinate NaN \(a missing point has neither\): mark a missing "
                r"point with both coordinates NaN \(a NaN row\); one coordinate alone is most likely a bug upstream "
                r"\(a column lost or shifted\)"),
-        (inf, r"landmark\(s\) \[50\] are infinite \(a missing point is a NaN row\)"),
+        (inf, r"landmark\(s\) \[50\] are infinite \(a missing point is a NaN row\): most likely a bug upstream \(a "
+              r"division by zero, an overflow\)"),
     ]
     frames = read_video(clip.video)[:2]
     for i, (points, message) in enumerate(cases):

@@ -94,12 +94,16 @@ def _check_int(value: object, name: str, low: int | None, extra: str) -> int:
 
 def check_real(value: object, name: str) -> float:
     """``value`` as a Python number: an ``int`` or a ``float`` as given, a numpy real number (``np.float32(0.5)``)
-    as a Python float; never a bool.
+    as a Python float, a 0-d real tensor or array (``torch.tensor(0.5)``, ``np.array(2)``) as its Python number
+    (``.item()``: a float, or an int for an integer one); never a bool (nor a bool or complex tensor).
 
     The settings' one rule for their numbers, as :func:`check_int`'s for counts: a value of another type (``"0.5"``,
     ``True``, ``None``) is a ``TypeError`` naming the setting ``name`` (``"0.5"`` was "'<' not supported between
     ...", or taken); the setting's own range check follows. An int stays an int, so that a setting's ``repr`` (part
     of ``training_hooks``' cache key and of ``torchface track --resume``'s record) is what it was.
+
+    A 0-d tensor was "must be a real number, got Tensor" where a Python number was taken, though
+    :func:`check_reals` took its elements so (``normalised_face(depth_tolerance=torch.tensor(0.1))`` had worked).
 
     Raises:
         TypeError: ``value`` is not a real number.
@@ -113,6 +117,11 @@ def check_optional_real(value: object, name: str) -> float | None:
 
 
 def _check_real(value: object, name: str, extra: str) -> float:
+    if isinstance(value, (torch.Tensor, np.ndarray)) and value.ndim == 0:  # (as iterating a tensor gives)
+        number = value.item()  # (a bool or complex one: a bool or complex, refused)
+        if isinstance(number, bool) or not isinstance(number, numbers.Real):
+            raise TypeError(f"{name} must be a real number{extra}, got {type(value).__name__} {value!r}")
+        return cast(float, number) if type(number) in (int, float) else float(number)
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
         raise TypeError(f"{name} must be a real number{extra}, got {type(value).__name__} {value!r}")
     return cast(float, value) if type(value) in (int, float) else float(value)
@@ -123,7 +132,8 @@ def check_number(value: object, name: str, interval: str, optional: Literal[Fals
 @overload
 def check_number(value: object, name: str, interval: str, optional: bool, unit: str = ...) -> float | None: ...
 def check_number(value: object, name: str, interval: str, optional: bool = False, unit: str = "") -> float | None:
-    """``value`` checked and converted as :func:`check_real` does (a ``TypeError`` for another type), then refused
+    """``value`` checked and converted as :func:`check_real` does (a ``TypeError`` for another type; a 0-d real
+    tensor is its Python number), then refused
     (``ValueError``) unless it lies in ``interval``, written as in mathematics: ``"[0, 1]"``, ``"(0, 0.5]"``,
     ``"[0, inf)"``. The settings' one rule for a number's range, each field's ``interval`` stated once.
 
@@ -160,7 +170,8 @@ def check_number(value: object, name: str, interval: str, optional: bool = False
     if not (above and below):  # (NaN: both False)
         unit = f" ({unit})" if unit else ""
         none = " or None" if optional else ""
-        raise ValueError(f"{name} must be {_interval_words(interval)}{unit}{none}, got {value!r}")
+        shown = number if isinstance(value, (torch.Tensor, np.ndarray)) else value  # (nan, not tensor(nan))
+        raise ValueError(f"{name} must be {_interval_words(interval)}{unit}{none}, got {shown!r}")
     return number
 
 
@@ -280,14 +291,8 @@ def check_reals(values: object, name: str, interval: str | None = None) -> tuple
     if not isinstance(values, (tuple, list)):
         raise TypeError(f"{name} must be a tuple of real numbers, got {type(values).__name__} {values!r}")
     if interval is None:
-        return tuple(check_real(_item(v), f"{name}[{i}]") for i, v in enumerate(values))
-    return tuple(check_number(_item(v), f"{name}[{i}]", interval) for i, v in enumerate(values))
-
-
-def _item(value: object) -> object:
-    """A 0-d array or tensor as its Python number (a bool one as a bool, refused by :func:`check_real`); any other
-    ``value`` as it is."""
-    return value.item() if isinstance(value, (np.ndarray, torch.Tensor)) and value.ndim == 0 else value
+        return tuple(check_real(v, f"{name}[{i}]") for i, v in enumerate(values))
+    return tuple(check_number(v, f"{name}[{i}]", interval) for i, v in enumerate(values))
 
 
 def check_exact_dim(x: torch.Tensor, name: str, dims: tuple[int, ...], shape_doc: str) -> None:

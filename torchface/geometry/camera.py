@@ -184,24 +184,54 @@ PLAUSIBLE_ASPECT: float = 1.25
 PLAUSIBLE_WIDE_PIXELS: float = 2.0
 
 
+#: The farthest the frame's centre may lie from the principal point, in focal lengths along x or y (63 degrees off
+#: the optical axis), before :func:`mixed_up_intrinsics` calls a camera implausible. A principal point outside the
+#: frame alone is not: a crop of a larger frame keeps that frame's principal point, off the crop (many crop widths
+#: off for a small crop of a telephoto frame); a pinhole camera that sees the crop's centre 63 degrees off its axis
+#: is none real. (Every principal point outside the frame was "implausible" until session 60.)
+PLAUSIBLE_OFF_AXIS: float = 2.0
+
+
 def _fits(w: int, h: int, fx: float, fy: float, cx: float, cy: float, tight: bool) -> bool:
     """Whether ``fx, fy, cx, cy`` are a plausible camera of a ``w x h`` frame: ``fx / fy`` at most
     :data:`PLAUSIBLE_ASPECT` and ``fy / fx`` at most :data:`PLAUSIBLE_WIDE_PIXELS`, both at least 5 % of the
     frame's larger side (a field of view under 175 degrees), the principal point inside the frame; ``tight``: as a
-    frame's camera nearly always is, focal lengths within 10 % of each other and the principal point within 15 % of
-    the frame's size from its centre."""
+    frame's camera nearly always is, focal lengths within 10 % of each other and at least 5 % of the frame's larger
+    side, the principal point within 15 % of the frame's size from its centre."""
     if tight:
-        return max(fx, fy) / min(fx, fy) <= 1.1 and abs(cx - (w - 1) / 2) <= 0.15 * w \
-            and abs(cy - (h - 1) / 2) <= 0.15 * h
-    return fx / fy <= PLAUSIBLE_ASPECT and fy / fx <= PLAUSIBLE_WIDE_PIXELS and min(fx, fy) >= 0.05 * max(w, h) \
-        and -0.5 <= cx <= w - 0.5 and -0.5 <= cy <= h - 0.5
+        return max(fx, fy) / min(fx, fy) <= 1.1 and min(fx, fy) >= 0.05 * max(w, h) \
+            and abs(cx - (w - 1) / 2) <= 0.15 * w and abs(cy - (h - 1) / 2) <= 0.15 * h
+    return _focal_lengths_fit(w, h, fx, fy) and -0.5 <= cx <= w - 0.5 and -0.5 <= cy <= h - 0.5
+
+
+def _focal_lengths_fit(w: int, h: int, fx: float, fy: float) -> bool:
+    """:func:`_fits`' loose test of the focal lengths alone."""
+    return fx / fy <= PLAUSIBLE_ASPECT and fy / fx <= PLAUSIBLE_WIDE_PIXELS and min(fx, fy) >= 0.05 * max(w, h)
+
+
+def _crop_fits(w: int, h: int, fx: float, fy: float, cx: float, cy: float) -> bool:
+    """Whether ``fx, fy, cx, cy`` are a plausible camera of a ``w x h`` crop of a larger frame: focal lengths as
+    :func:`_fits` takes them, the frame's centre at most :data:`PLAUSIBLE_OFF_AXIS` focal lengths from the principal
+    point along each axis (wherever the principal point lies)."""
+    return _focal_lengths_fit(w, h, fx, fy) and abs(cx - (w - 1) / 2) <= PLAUSIBLE_OFF_AXIS * fx \
+        and abs(cy - (h - 1) / 2) <= PLAUSIBLE_OFF_AXIS * fy
+
+
+class MixedUpIntrinsics(UserWarning):
+    """The warning :func:`~torchface.tracker.step.initialise` gives with :func:`mixed_up_intrinsics`' hint (a
+    ``UserWarning``); ``intrinsics`` is the camera it is of, for a front end that speaks of its own options
+    (``torchface track --focal``) rather than of :class:`Intrinsics`' arguments."""
+
+    def __init__(self, message: str, intrinsics: Intrinsics) -> None:
+        super().__init__(message)
+        self.intrinsics = intrinsics
 
 
 def mixed_up_intrinsics(intrinsics: Intrinsics) -> str | None:
     """A hint, as one line, where a frame's camera looks like a mix-up of the constructor's arguments, with the
     likely fix; None for a plausible camera (and for entries that are tensors: a calibration being optimised).
 
-    Nothing here is impossible (a principal point off the frame's centre, or outside a crop of the sensor, and
+    Nothing here is impossible (a principal point off the frame's centre, or outside a crop of a larger frame, and
     non-square pixels exist), so :func:`~torchface.tracker.step.initialise` warns with it and tracks on
     (:func:`~torchface.tracker.step.check_initialise_inputs`). A camera is looked at where it is implausible: ``fx``
     more than :data:`PLAUSIBLE_ASPECT` times ``fy``, or ``fy`` more than :data:`PLAUSIBLE_WIDE_PIXELS` times ``fx``
@@ -212,9 +242,14 @@ def mixed_up_intrinsics(intrinsics: Intrinsics) -> str | None:
     - OpenCV's matrix order ``fx, cx, fy, cy`` (``K``'s entries row by row) given as ``fx, fy, cx, cy``;
     - the principal point and the focal lengths swapped (``cx, cy, fx, fy``);
     - normalised intrinsics (``fx / W``, ``cx / W``: a focal length of about one pixel);
+    - the camera of a larger frame, not scaled with the frames (its principal point the larger frame's centre: a
+      calibration at 1920x1440 used for 640x480 frames);
     - a principal point at ``(0, 0)``, the top-left pixel (a transposed ``K`` read, or a camera whose image
       coordinates are centred; torchface's pixel centres are at integers from the top-left, the centre at
-      ``((W - 1) / 2, (H - 1) / 2)``).
+      ``((W - 1) / 2, (H - 1) / 2)``), or at ``(W, H)``, the frame's size.
+
+    A principal point outside the frame that none of these explains is a crop's camera (its larger frame's principal
+    point), plausible unless the frame's centre lies more than :data:`PLAUSIBLE_OFF_AXIS` focal lengths from it.
 
     Example:
         >>> mixed_up_intrinsics(Intrinsics(640, 480, 600.0, 319.5, 600.0, 239.5))  # doctest: +ELLIPSIS
@@ -234,6 +269,11 @@ def mixed_up_intrinsics(intrinsics: Intrinsics) -> str | None:
                 f"from the top-left, a centred camera's principal point ({(w - 1) / 2:g}, {(h - 1) / 2:g})")
     if _fits(w, h, fx, fy, cx, cy, tight=False):
         return None
+    if abs(cx - w) <= 1 and abs(cy - h) <= 1 and _focal_lengths_fit(w, h, fx, fy):
+        return (f"intrinsics {given} put the principal point at ({w}, {h}), the frame's size: a centred camera's "
+                f"principal point is ({(w - 1) / 2:g}, {(h - 1) / 2:g}), pixel centres at integers from the top-left")
+    # (the larger frame whose centre the principal point is, if it is one: the same scale along x and y, to 3 %)
+    scale, scale_y = (2 * cx + 1) / w, (2 * cy + 1) / h
     readings = (
         ("OpenCV's matrix order (fx, cx, fy, cy), K's entries row by row, given as (fx, fy, cx, cy)?",
          (fx, cx, fy, cy)),
@@ -244,7 +284,15 @@ def mixed_up_intrinsics(intrinsics: Intrinsics) -> str | None:
         if min(a, b) > 0 and _fits(w, h, a, b, c, d, tight=True):
             return (f"intrinsics {given} look mixed up: {what} Likely meant: Intrinsics({w}, {h}, fx={a:g}, fy={b:g}, "
                     f"cx={c:g}, cy={d:g}), or Intrinsics.from_matrix(K, {w}, {h}) from a 3x3 calibration matrix")
+    a, b, d = fx / scale, fy / scale, (cy + 0.5) / scale - 0.5  # (that frame's camera scaled to these frames)
+    if scale >= 2 and abs(scale_y / scale - 1) <= 0.03 and _fits(w, h, a, b, (w - 1) / 2, d, tight=True):
+        return (f"intrinsics {given} look like the camera of a {w * scale:.0f}x{h * scale:.0f} frame (its centre the "
+                f"principal point), not scaled with these frames? Likely meant: Intrinsics({w}, {h}, fx={a:.6g}, "
+                f"fy={b:.6g}, cx={(w - 1) / 2:g}, cy={d:.6g}), intrinsics.scaled({1 / scale:.6g}); the camera of a "
+                "crop of a larger frame (its principal point) is right as given")  # fmt: skip
+    if _crop_fits(w, h, fx, fy, cx, cy):  # (a principal point outside the frame alone: a crop of a larger frame)
+        return None
     return (f"intrinsics {given} are implausible (fx more than {PLAUSIBLE_ASPECT:g} times fy or fy more than "
-            f"{PLAUSIBLE_WIDE_PIXELS:g} times fx, under 5 % of the frame's size, or a principal point outside the "
-            f"frame): check the order, Intrinsics(width, height, fx, fy, cx, cy), or use Intrinsics.from_matrix(K, "
-            f"{w}, {h})")
+            f"{PLAUSIBLE_WIDE_PIXELS:g} times fx, under 5 % of the frame's size, or the frame's centre more than "
+            f"{PLAUSIBLE_OFF_AXIS:g} focal lengths from the principal point): check the order, Intrinsics(width, "
+            f"height, fx, fy, cx, cy), or use Intrinsics.from_matrix(K, {w}, {h})")

@@ -536,7 +536,7 @@ def _names_y_first(names: list[str]) -> bool:
 def missing_points_problem(points: np.ndarray, what: str = "iBUG points") -> str | None:
     """What is wrong, as one line, with ``(K, 2)`` pixel landmarks whose NaN rows are missing points (a landmarks
     file's, :func:`check_landmarks` with ``missing``; ``training_hooks``' first-frame landmarks), or None: an infinite
-    coordinate, a row with one coordinate NaN (:func:`~torchface.tracker.fit.partly_missing_problem`, the rule the
+    coordinate or a row with one coordinate NaN (:func:`~torchface.tracker.fit.landmark_rows_problem`, the rule the
     Python API's landmarks follow too), or fewer points given than the landmark fit's
     :data:`~torchface.tracker.fit.MIN_FIT_LANDMARKS` (4). ``what`` names the points.
 
@@ -550,19 +550,16 @@ def missing_points_problem(points: np.ndarray, what: str = "iBUG points") -> str
         True
     """
     points = np.asarray(points, dtype=np.float64)
-    nan = np.isnan(points)
-    infinite = np.isinf(points).any(axis=1)
-    if infinite.any():
-        return f"landmark(s) {np.flatnonzero(infinite).tolist()[:8]} are infinite (a missing point is a NaN row)"
     # (here: the tracker imports torch and the model)
     import torch
 
-    from torchface.tracker.fit import MIN_FIT_LANDMARKS, partly_missing_problem
+    from torchface.tracker.fit import MIN_FIT_LANDMARKS, landmark_rows_problem
 
-    # the rule of every landmark input, the Python API's too: one coordinate NaN, the other given, is refused
-    problem = partly_missing_problem(torch.from_numpy(np.ascontiguousarray(points)), weighted=False)
+    # the rule of every landmark input, the Python API's too: an infinite coordinate, or one coordinate NaN alone
+    problem = landmark_rows_problem(torch.from_numpy(np.ascontiguousarray(points)), weighted=False)
     if problem is not None:
         return problem
+    nan = np.isnan(points)
     given = int((~nan.any(axis=1)).sum())
     if given < MIN_FIT_LANDMARKS:
         return (f"{given} of the {len(points)} {what} given, the others missing (NaN): the landmark fit needs at "

@@ -496,7 +496,8 @@ def normalised_face(
         )
     if layout.face_index.device != model.device:
         raise ValueError(f"layout must be on the model's device {model.device}, got {layout.face_index.device}")
-    _check_visibility_settings(depth_tolerance, min_facing_cos)
+    depth_tolerance, min_facing_cos = _check_visibility_settings(depth_tolerance, min_facing_cos)  # (numbers: a
+    # 0-d tensor's too)
     B, C = frames.shape[:2]
     _check_params("shape_coeffs", shape_coeffs, model.num_shape, B, model)
     _check_params("anim_coeffs", anim_coeffs, model.num_animation, B, model)

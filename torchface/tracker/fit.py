@@ -311,14 +311,15 @@ def landmark_targets(landmarks_px: Tensor, weights: Tensor | None = None) -> tup
     """What the landmark terms fit (:func:`fit_landmarks`, the look-ahead refinement): ``(targets, weights)``.
 
     Args:
-        landmarks_px: ``(..., K, 2)`` pixels; a point with a NaN or infinite coordinate is missing.
+        landmarks_px: ``(..., K, 2)`` pixels; a point with a NaN or infinite coordinate is missing (the entry points
+            refuse infinite ones: :func:`check_landmark_values`; a detector's are made NaN rows).
         weights: ``(..., K)`` confidences, or None for ones.
 
     Returns:
         ``targets (..., K, 2)``: the landmarks, non-finite coordinates set to 0 (they weigh 0, and a product of 0
         with an infinite target's square would be NaN); ``weights (..., K)``: 0 for a missing point and for a NaN,
         infinite or negative weight, the weight elsewhere; both in ``landmarks_px``' dtype and device. (The entry
-        points refuse rows with one coordinate alone and NaN, infinite or negative weights:
+        points refuse rows with one coordinate NaN alone or an infinite one, and NaN, infinite or negative weights:
         :func:`check_landmark_values`; this reads what they let through, and a detector's answer.)
     """
     finite = torch.isfinite(landmarks_px)
@@ -388,46 +389,61 @@ def _points_named(bad: Tensor) -> str:
     return f"landmark(s) {flat[streams[0]].nonzero().flatten().tolist()[:8]} of stream {streams[0]}{more}"
 
 
-def partly_missing_problem(landmarks_px: Tensor, *, weighted: bool = True) -> str | None:
-    """One line naming the rows of ``(K, 2)`` or ``(B, K, 2)`` landmarks that hold one coordinate and not the other
-    (one NaN or infinite, the other finite), or None: the one rule every landmark input follows (the Python API's
+def landmark_rows_problem(landmarks_px: Tensor, *, weighted: bool = True) -> str | None:
+    """One line naming the rows of ``(K, 2)`` or ``(B, K, 2)`` landmarks that are neither a point (both coordinates
+    finite) nor a missing point (both NaN), or None: the one rule every landmark input follows (the Python API's
     :func:`check_landmark_values`; a landmarks file's and ``training_hooks``' arrays,
-    :func:`torchface.io.landmarks.missing_points_problem`). A missing point is a NaN row, both coordinates NaN; a row
-    with one coordinate alone is almost surely a bug upstream (a column lost or shifted, one coordinate of a point
-    masked), and it used to be taken as missing by :class:`~torchface.tracker.FaceTracker` and refused by the
-    command line. ``weighted``: the input takes weights (the message then says that weight 0 ignores a point).
+    :func:`torchface.io.landmarks.missing_points_problem`). A missing point is a NaN row. Refused:
+
+    - a row with an infinite coordinate: most likely a bug upstream (a division by zero, an overflow), not a way to
+      leave a point out (it used to be taken as missing by :class:`~torchface.tracker.FaceTracker` and refused by
+      the command line);
+    - a row with one coordinate NaN and the other finite: most likely a bug upstream too (a column lost or shifted,
+      one coordinate of a point masked).
+
+    ``weighted``: the input takes weights (the message then says that weight 0 ignores a point). A detector's
+    answer mid-stream is not refused: such rows are missing points, with a warning
+    (:func:`~torchface.tracker.managed.initialise_managed`'s restarts).
 
     Example:
         >>> lm = torch.tensor([[1.0, 2.0], [float("nan"), 3.0]])
-        >>> partly_missing_problem(lm, weighted=False)  # doctest: +ELLIPSIS
+        >>> landmark_rows_problem(lm, weighted=False)  # doctest: +ELLIPSIS
         'landmark(s) [1] have one coordinate NaN (a missing point has neither): mark a missing point with both ...'
+        >>> landmark_rows_problem(torch.tensor([[1.0, 2.0], [float("inf"), float("inf")]]))  # doctest: +ELLIPSIS
+        'landmark(s) [1] are infinite (a missing point is a NaN row): most likely a bug upstream (a division by ...'
     """
     lm = landmarks_px.detach()
     if not lm.is_floating_point() or lm.dim() < 2 or lm.shape[-1] != 2:  # (integers are finite; shapes: callers')
         return None
     finite = torch.isfinite(lm)
-    partly = finite.any(-1) & ~finite.all(-1)
-    if not bool(partly.any()):
+    if bool(finite.all()):
         return None
-    what = "NaN" if bool((torch.isnan(lm).any(-1) | ~partly).all()) else "NaN or infinite"
-    zero = ", or give a point you do not trust weight 0" if weighted else ""
-    return (f"{_points_named(partly)} have one coordinate {what} (a missing point has neither): mark a missing point "
-            f"with both coordinates NaN (a NaN row){zero}; one coordinate alone is most likely a bug upstream (a "
-            "column lost or shifted)")
+    zero = "give a point you do not trust weight 0" if weighted else ""
+    infinite = torch.isinf(lm).any(-1)
+    partly = finite.any(-1) & ~finite.all(-1) & ~infinite  # (one coordinate NaN, the other finite)
+    problems: list[str] = []
+    if bool(infinite.any()):
+        problems.append(f"{_points_named(infinite)} are infinite (a missing point is a NaN row): most likely a bug "
+                        f"upstream (a division by zero, an overflow){'; ' + zero if zero else ''}")  # fmt: skip
+    if bool(partly.any()):
+        problems.append(f"{_points_named(partly)} have one coordinate NaN (a missing point has neither): mark a "
+                        f"missing point with both coordinates NaN (a NaN row){', or ' + zero if zero else ''}; one "
+                        "coordinate alone is most likely a bug upstream (a column lost or shifted)")  # fmt: skip
+    return "; ".join(problems) or None
 
 
 def check_landmark_values(
     landmarks_px: Tensor, weights: Tensor | None = None, *, name: str = "landmarks_px", weights_name: str = "weights"
 ) -> None:
-    """Refuse, with a ``ValueError`` naming the points, ``(..., K, 2)`` landmarks with a row that holds one coordinate
-    alone (:func:`partly_missing_problem`) and ``(..., K)`` ``weights`` (checked for shape by the caller) that are
-    NaN, infinite or negative: they were taken as weight 0 without a word (:func:`landmark_targets`), where they are
-    almost surely a bug (a confidence of NaN from a failed detection, a log-probability given as a weight). Weights
-    are ``>= 0``: 0 ignores a point (as a NaN row does), 1 is what the fit's priors are set for. The checks of
-    :func:`fit_landmarks`, :func:`~torchface.tracker.step.initialise` (and so
-    :class:`~torchface.tracker.FaceTracker`), :func:`~torchface.tracker.step.pyramid_for_faces` and the look-ahead's
-    refinement."""
-    problem = partly_missing_problem(landmarks_px)
+    """Refuse, with a ``ValueError`` naming the points, ``(..., K, 2)`` landmarks with a row that is neither a point
+    nor a missing point (an infinite coordinate, or one coordinate NaN alone: :func:`landmark_rows_problem`) and
+    ``(..., K)`` ``weights`` (checked for shape by the caller) that are NaN, infinite or negative: they were taken
+    as weight 0 without a word (:func:`landmark_targets`), where they are almost surely a bug (a confidence of NaN
+    from a failed detection, a log-probability given as a weight). Weights are ``>= 0``: 0 ignores a point (as a
+    NaN row does), 1 is what the fit's priors are set for. The checks of :func:`fit_landmarks`,
+    :func:`~torchface.tracker.step.initialise` (and so :class:`~torchface.tracker.FaceTracker`),
+    :func:`~torchface.tracker.step.pyramid_for_faces` and the look-ahead's refinement."""
+    problem = landmark_rows_problem(landmarks_px)
     if problem is not None:
         raise ValueError(f"{name}: {problem}")
     if weights is None or weights.dtype == torch.bool:

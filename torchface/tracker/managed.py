@@ -108,7 +108,7 @@ from torchface.template.points import (
     strided_window,
 )
 from torchface.tracker.fit import (
-    LandmarkFit, fit_landmarks, landmarks_inside_fraction, normalised_streams, partly_missing_problem,
+    LandmarkFit, fit_landmarks, landmark_rows_problem, landmarks_inside_fraction, normalised_streams,
 )
 from torchface.tracker.inference import without_autograd
 from torchface.tracker.lookahead import (
@@ -756,8 +756,9 @@ def _check_detector_output(landmarks: object, count: int, k: int, width: int, he
     ``(count, k, 2)`` real landmarks: bool ones were fitted as pixels 0 and 1 (the fit failed, the stream silently
     left LOST), a numpy array or a list was told its shape was wrong.
 
-    A row with one coordinate alone (:func:`~torchface.tracker.fit.partly_missing_problem`, refused where a user
-    gives landmarks) is made a NaN row, a missing point, with a ``RuntimeWarning`` naming it: a restart never raises.
+    A row with an infinite coordinate or one coordinate NaN alone (:func:`~torchface.tracker.fit.landmark_rows_problem`,
+    refused where a user gives landmarks) is made a NaN row, a missing point, with a ``RuntimeWarning`` naming it: a
+    restart never raises.
 
     Returns:
         The landmarks, with NaN rows (no face found) for the streams whose landmarks are in normalised coordinates
@@ -776,7 +777,7 @@ def _check_detector_output(landmarks: object, count: int, k: int, width: int, he
     if tuple(landmarks.shape) != (count, k, 2):
         got = tuple(landmarks.shape)
         raise ValueError(f"the detector must return ({count}, {k}, 2) landmarks (NaN rows: no face), got {got}")
-    problem = partly_missing_problem(landmarks, weighted=False)
+    problem = landmark_rows_problem(landmarks, weighted=False)
     if problem is not None:  # (refused where a user gives them; a running track is not stopped: missing, with a word)
         warnings.warn(f"the detector's {problem}: those points are taken as missing", RuntimeWarning, stacklevel=2)
         finite = torch.isfinite(landmarks).all(-1, keepdim=True)

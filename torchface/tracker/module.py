@@ -266,8 +266,8 @@ class FaceTracker(DeviceCheckedModule):
         Args:
             frames: ``(B, 3, H, W)`` RGB or ``(B, 1, H, W)`` gray, float in [0, 1] (values outside
                 :data:`~torchface.tracker.step.FRAME_VALUE_RANGE` are refused: divide 0-255 frames by 255).
-            landmarks_px: ``(B, K, 2)`` the model's K landmarks (68 iBUG points for CANDIDE-3) in pixels; a NaN row
-                (or infinite): missing; a row with one coordinate alone is refused
+            landmarks_px: ``(B, K, 2)`` the model's K landmarks (68 iBUG points for CANDIDE-3) in pixels; a NaN row:
+                missing; an infinite coordinate and a row with one coordinate NaN alone are refused
                 (:func:`~torchface.tracker.fit.check_landmark_values`). A stream whose start fails (fewer than 4: no
                 face found in its frame; landmarks that hold no pose, a face too small, a black frame:
                 :func:`~torchface.tracker.initialise`) starts FAILED and holds its finite estimate at confidence 0,

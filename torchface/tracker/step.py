@@ -34,7 +34,7 @@ from torchface.conventions import MEDIAPIPE_MESH_HINT, MEDIAPIPE_MESH_POINT_COUN
 from torchface.geometry._checks import (
     check_bool, check_choice, check_int, check_intrinsics, check_ints, check_number, check_reals,
 )
-from torchface.geometry.camera import Intrinsics, mixed_up_intrinsics
+from torchface.geometry.camera import Intrinsics, MixedUpIntrinsics, mixed_up_intrinsics
 from torchface.geometry.projection import project_points
 from torchface.geometry.so3 import axis_angle_to_matrix, matrix_to_axis_angle, matrix_to_euler
 from torchface.model.face_model import FaceModel
@@ -1023,7 +1023,7 @@ def check_initialise_inputs(
     mixed_up = mixed_up_intrinsics(intrinsics)
     if mixed_up is not None:  # (implausible, not impossible: tracked as given, with a word; from this line, so that
         # Python's filter shows it once, not once per entry point that checks: FaceTracker, initialise_managed, ...)
-        warnings.warn(mixed_up, UserWarning, stacklevel=1)
+        warnings.warn(MixedUpIntrinsics(mixed_up, intrinsics), stacklevel=1)  # (a UserWarning)
     B, K = frames.shape[0], model.num_landmarks
     if B == 0:
         raise ValueError("frames must hold at least one stream (B >= 1), got B = 0")
@@ -1052,7 +1052,7 @@ def check_initialise_inputs(
         raise ValueError(f"weights must be ({B}, {K}), got {tuple(weights.shape)}")
     if weights is not None:
         check_holds_data(weights, "weights")
-    check_landmark_values(landmarks_px, weights)  # (a row with one coordinate alone; NaN, infinite, negative weights)
+    check_landmark_values(landmarks_px, weights)  # (infinite or half-NaN rows; NaN, infinite, negative weights)
     check_pixel_landmarks(landmarks_px, frames.shape[-1], frames.shape[-2], weights)  # (not MediaPipe's [0, 1])
     _unit_weights(config, model.num_animation, frames)  # their count, before any work
 
@@ -1097,8 +1097,9 @@ def pyramid_for_faces(
             instead of three).
 
     Raises:
-        TypeError, ValueError: landmarks or weights of the wrong type or shape, a landmark row with one coordinate
-            alone, NaN, infinite or negative weights (:func:`~torchface.tracker.fit.check_landmark_values`).
+        TypeError, ValueError: landmarks or weights of the wrong type or shape, a landmark row with an infinite
+            coordinate or one coordinate NaN alone, NaN, infinite or negative weights
+            (:func:`~torchface.tracker.fit.check_landmark_values`).
 
     Returns:
         ``config`` itself, or a copy with more ``num_levels`` and ``iterations``.
@@ -1253,8 +1254,8 @@ def initialise(
         model: the face model.
         config: :class:`TrackerConfig`.
         frames: ``(B, 3, H, W)`` (or gray ``(B, 1, H, W)``) first frames, float in [0, 1].
-        landmarks_px: ``(B, K, 2)`` the model's landmarks in pixels (a NaN row = missing; a row with one coordinate
-            alone is refused: :func:`~torchface.tracker.fit.check_landmark_values`). A stream with fewer than
+        landmarks_px: ``(B, K, 2)`` the model's landmarks in pixels (a NaN row = missing; an infinite coordinate or
+            one NaN alone is refused: :func:`~torchface.tracker.fit.check_landmark_values`). A stream with fewer than
             :data:`~torchface.tracker.fit.MIN_FIT_LANDMARKS` (4) of positive weight (all NaN: no face found) fails
             alone, FAILED at :func:`~torchface.tracker.fit.fit_landmarks`' placeholder pose.
         intrinsics: camera of ``frames``.
