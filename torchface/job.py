@@ -832,12 +832,14 @@ def _check_out_dir(out_dir: Path) -> None:
 
 def _lock_owner(path: Path) -> tuple[int, str] | None:
     """``(pid, host)`` that the lock file ``path`` names (:func:`_take_locks`); None where it names none (not a
-    lock of this job, or one whose run has created it and not yet written it)."""
+    lock of this job, or one whose run has created it and not yet written it, or a damaged one: a pid that no
+    process can have, under 1 or 2**31 and over, which ``os.kill`` met with an ``OverflowError`` traceback)."""
     try:
         pid, host = path.read_text(encoding="utf-8").split(maxsplit=1)
-        return int(pid), host.strip()
+        number = int(pid)
     except (OSError, UnicodeDecodeError, ValueError):
         return None
+    return (number, host.strip()) if 0 < number < 2**31 else None
 
 
 def _alive(pid: int) -> bool:
@@ -845,7 +847,8 @@ def _alive(pid: int) -> bool:
     Unlike its near-twin :func:`torchface._atomic._running` (True where it cannot tell: on Windows, a lock of a run
     that ended would never be taken over, every later run refused), it tells on Windows too, and asks ``os.kill`` of
     the lock's pid as it is: 0 and -1 (a process group, every process) are True, another negative one False, and one
-    too large for ``os.kill`` raises ``OverflowError`` (a damaged lock file)."""
+    too large for ``os.kill`` raises ``OverflowError`` (:func:`_lock_owner` gives it none of those: a lock naming
+    one names no process)."""
     if sys.platform == "win32":  # (os.kill(pid, 0) there sends CTRL_C_EVENT, or terminates the process)
         return _alive_windows(pid)
     try:

@@ -3295,6 +3295,25 @@ def test_a_lock_left_by_a_run_that_has_ended_is_taken_over(clip, tmp_path, capsy
         running.wait()
 
 
+def test_a_damaged_lock_naming_no_possible_pid_is_refused_in_a_line(clip, tmp_path, capsys):
+    """A lock file whose pid no process can have (2**31 and over: ``os.kill`` raised ``OverflowError``, a traceback)
+    names no process: refused as any lock that names none, one line saying which file to remove."""
+    import socket
+
+    video, lm, _ = clip
+    short = _short_npy(video, tmp_path / "short.npy", 2)
+    out = tmp_path / "out"
+    out.mkdir()
+    for pid in (2**31, 10**20, 0):
+        (out / "short.lock").write_text(f"{pid} {socket.gethostname()}\n")
+        with pytest.raises(OutputError, match=r"short.lock: another run is writing the outputs of short"):
+            track_videos([short], JobConfig(out_dir=out, landmarks=(lm,), refine_first=None))
+    assert main(["track", str(short), "--out", str(out), "--landmarks", str(lm), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("torchface: error: ") and "\n" not in err and "remove this file" in err, err
+    assert (out / "short.lock").is_file()  # (left: it may be another run's, half written)
+
+
 def _screen(text: str) -> list[str]:
     """What a terminal shows after ``text``: lines, with the cursor movements the progress display writes
     (``ESC[nF`` n lines up, ``ESC[2K`` the line cleared, ``ESC[J`` the rest cleared) applied."""
