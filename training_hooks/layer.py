@@ -382,7 +382,21 @@ class NormalisedFaceLayer(DeviceCheckedModule):
         return _tracked(initialise)(self.model, config, frames, landmarks_px, intrinsics)
 
     def normalise(self, frames: Tensor, state: TrackerState, params: Tensor) -> NormalisedFaceResult:
-        """Resample ``(B, C, H, W)`` frames with ``(B, P)`` parameters and the state's shape and camera."""
+        """Resample ``(B, C, H, W)`` frames with ``(B, P)`` parameters and the state's shape and camera.
+
+        Frame by frame, frame 0's face is ``layer.normalise(frames0, state, state.params)`` with the state of
+        :meth:`initialise` (which returns a ``TrackResult``, no face): what :meth:`forward_clip` gives at ``t = 0``.
+
+        Args:
+            frames: ``(B, C, H, W)`` float in ``[0, 1]`` (may require grad: the gradient reaches them through the
+                resampling).
+            state: the tracker state whose shape coefficients, neutral expression and camera are used.
+            params: ``(B, P)`` packed pose, expression and light (``state.params``, or an unrolled step's).
+
+        Returns:
+            :class:`~torchface.normalise.NormalisedFaceResult`: ``image (B, C, G, G)``, ``mask (B, 1, G, G)``, with
+            ``G`` = :attr:`LayerConfig.size`.
+        """
         aa, t, alpha, light = self.param_layout.split(params)
         if self.config.keep_expression:  # the person's neutral: the first frame's fitted coefficients
             alpha = state.neutral_anim_coeffs(alpha).detach()
