@@ -1444,8 +1444,16 @@ class VideoDataset(IterableDataset):
 
         def find(frame: Tensor) -> np.ndarray | None:
             points = self.detector(detector_image(frame))  # type: ignore[misc]
+            if points is None:
+                return None
+            points = np.asarray(points)
+            if points.size == 0:  # (read "expected 68 iBUG landmarks, got 0": a detector's "no face" of its own)
+                raise InputError(
+                    f"{where}: the detector returned an empty array {points.shape}: a detector returns None where it "
+                    "finds no face (torchface.detect.Detector), and the search goes on to the next frame"
+                )
             # (half of them inside: dlib's predictor places the chin of a face at the frame's edge outside it)
-            return None if points is None else check_landmarks(np.asarray(points), W, H, where, min_inside=0.5)
+            return check_landmarks(points, W, H, where, min_inside=0.5)
 
         tick = self._frame_ticks(index, "searched for its first face")
         start, frame, points = search_first_face(

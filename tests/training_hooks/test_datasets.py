@@ -689,6 +689,9 @@ def test_bad_landmarks_and_detector_fail_with_the_file_name(clips, config):
         list(VideoDataset([clip.video], [outside], cfg))
     with pytest.raises(InputError, match="no face"):
         list(VideoDataset([clip.video], lambda image: None, cfg))
+    # a detector's own "no face", an empty array, read "expected 68 iBUG landmarks, got 0"
+    with pytest.raises(InputError, match=r"returned an empty array \(0, 2\): a detector returns None where it finds"):
+        list(VideoDataset([clip.video], lambda image: np.zeros((0, 2)), cfg))
     with pytest.raises(InputError, match=str(clip.video.name)):
         list(DataLoader(VideoDataset([clip.video], [clip.landmarks[:60]], cfg), batch_size=None, num_workers=1))
 
