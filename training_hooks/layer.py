@@ -463,7 +463,16 @@ class NormalisedFaceLayer(DeviceCheckedModule):
         if not isinstance(clips, Tensor):  # (a numpy clip was a ValueError, as a wrong shape; forward's a TypeError)
             raise TypeError(f"clips must be a torch.Tensor (B, T, 3, H, W), got {type(clips).__name__}")
         if clips.dim() != 5 or clips.shape[1] < 1:
-            raise ValueError(f"clips must be (B, T, 3, H, W) with T >= 1, got {tuple(clips.shape)}")
+            # (one clip's (T, C, H, W) was told the shape alone)
+            hint = " (one clip (T, C, H, W): clips[None])" if clips.dim() == 4 and clips.shape[1] in (1, 3) else ""
+            raise ValueError(f"clips must be (B, T, 3, H, W) with T >= 1, got {tuple(clips.shape)}{hint}")
+        if isinstance(landmarks_px, Tensor) and landmarks_px.dim() == 2:
+            # (initialise's "with B = 1 (one set per frame)": a clip takes one set, its first frame's)
+            hint = ": one clip's, landmarks_px[None]" if clips.shape[0] == 1 else ""
+            raise ValueError(
+                f"landmarks_px must be (B, K, 2), one set per clip, the first frame's: clips {tuple(clips.shape)} are "
+                f"B = {clips.shape[0]} clips, got landmarks_px {tuple(landmarks_px.shape)}{hint}"
+            )
         # (told of a frame's layout, clips[:, 0]'s: channels last was "frames.permute(0, 3, 1, 2)", which a clip
         # cannot take; uint8 clips, cast to the model's dtype first, were "values from 0 to 255")
         hint = ""
