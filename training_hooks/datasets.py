@@ -184,7 +184,7 @@ from torchface.io.landmarks import NUM_LANDMARKS, check_landmarks, read_landmark
 from torchface.io.video import CONVERT_HINT, folder_of_videos_hint, image_files, open_capture, open_frames
 from torchface.model.face_model import FaceModel
 from training_hooks.cache import CacheStats, TrackCache, cache_key, content_hash
-from training_hooks.transforms import FaceTrackingConfig, NormaliseFaces, TrackedSequence
+from training_hooks.transforms import FaceTrackingConfig, NormaliseFaces, TrackedSequence, _landmarks_shape_hint
 
 __all__ = [
     "DatasetConfig",
@@ -830,7 +830,9 @@ def _as_numpy(points: Tensor) -> np.ndarray:
     return (points.to(torch.float32) if points.dtype == torch.bfloat16 else points).numpy()
 
 
-def _kept_landmarks(source: LandmarkSource, video: Path, count: int) -> np.ndarray | str | os.PathLike:
+def _kept_landmarks(
+    source: LandmarkSource, video: Path, count: int, index: int = 0
+) -> np.ndarray | str | os.PathLike:
     """One video's landmarks as a dataset keeps them, checked as far as they can be without its frames.
 
     A tensor is kept as a NumPy array (``.detach().cpu().numpy()``, bfloat16 as float32: the values the landmark fit
@@ -857,7 +859,8 @@ def _kept_landmarks(source: LandmarkSource, video: Path, count: int) -> np.ndarr
     if len(shape) == 1 and shape[0] % 2 == 0:
         shape = (shape[0] // 2, 2)
     if len(shape) != 2 or shape[1] != 2:
-        raise InputError(f"{where}: expected {count} (x, y) points, got an array of shape {np.shape(source)}")
+        hint = _landmarks_shape_hint(tuple(np.shape(source)), count, f"landmarks[{index}]")
+        raise InputError(f"{where}: expected {count} (x, y) points, got an array of shape {np.shape(source)}{hint}")
     if shape[0] != count:
         what = "iBUG landmarks" if count == NUM_LANDMARKS else "landmarks (the face model's)"
         hint = "a missing point stays, as a NaN row"
@@ -1003,7 +1006,7 @@ class VideoDataset(IterableDataset):
                         f"landmarks[{i}] ({self.videos[i]}) must be a {one} array or tensor, or a landmarks file, "
                         f"got {type(source).__name__}{once}"
                     )
-            kept = tuple(_kept_landmarks(s, self.videos[i], num_landmarks) for i, s in enumerate(landmarks))
+            kept = tuple(_kept_landmarks(s, self.videos[i], num_landmarks, i) for i, s in enumerate(landmarks))
             self.detector, self.landmarks = None, kept
         if self.detector is not None and num_landmarks != NUM_LANDMARKS:
             raise ValueError(
