@@ -445,11 +445,11 @@ def _landmarks_tensor(landmarks: object, count: int = 68) -> Tensor:
         raise TypeError(f"landmarks must be a ({count}, 2) array or tensor, or a TrackerState, got {got}")
     if tuple(landmarks.shape) != (count, 2):
         what = "iBUG points" if count == 68 else "points, the model's landmarks,"
-        got = tuple(landmarks.shape)
-        hint = _landmarks_shape_hint(got, count)
-        if got == (1, count, 2):
+        shape = tuple(landmarks.shape)
+        hint = _landmarks_shape_hint(shape, count)
+        if shape == (1, count, 2):
             hint = " (one set in a batch of one: landmarks[0])"
-        raise ValueError(f"landmarks must be ({count}, 2) {what} in pixels, got {got}{hint}")
+        raise ValueError(f"landmarks must be ({count}, 2) {what} in pixels, got {shape}{hint}")
     # (too few points given: the Python API starts such a stream FAILED; a dataset's item would be junk)
     points = landmarks.detach().to(device="cpu", dtype=torch.float64).numpy()
     problem = missing_points_problem(points, "iBUG points" if count == 68 else "points")
