@@ -142,6 +142,7 @@ from __future__ import annotations
 import copy
 import enum
 import functools
+import glob
 import itertools
 import multiprocessing.util
 import os
@@ -792,8 +793,18 @@ def _check_exists(path: Path, given: str | os.PathLike[str]) -> None:
     files or .npy arrays (use FrameFolderDataset for folders)", or the other way round); ``path`` is the absolute
     path of the one ``given``."""
     if not path.exists():
-        link = " (a symbolic link to a missing target)" if path.is_symlink() else _tilde(given)
+        link = " (a symbolic link to a missing target)" if path.is_symlink() else _tilde(given) or _pattern(path)
         raise InputError(f"{path}: no such file or folder{link}")
+
+
+def _pattern(path: Path) -> str:
+    """A hint for a missing ``path`` that is a glob pattern (``"clips/*.mp4"``, as a shell or a Hydra config holds
+    it: it was told "no such file or folder" alone); "" otherwise."""
+    if not any(c in os.fspath(path) for c in "*?["):
+        return ""
+    n = len(glob.glob(os.fspath(path)))
+    return (f" (a pattern? Nothing expands it here: sorted(glob.glob(pattern)) gives the {n} "
+            f"path{'' if n == 1 else 's'} it matches)")  # fmt: skip
 
 
 def _holds_images(folder: Path) -> bool:
@@ -848,7 +859,8 @@ def _kept_landmarks(
     if isinstance(source, (str, os.PathLike)):
         path = Path(source)
         if not path.is_file():  # (read_landmarks' words)
-            problem = "a folder, not a landmarks file" if path.is_dir() else f"no such landmarks file{_tilde(source)}"
+            problem = ("a folder, not a landmarks file" if path.is_dir()
+                       else f"no such landmarks file{_tilde(source) or _pattern(path)}")  # fmt: skip
             raise InputError(f"{where}: {path}: {problem}")
         return path.absolute()  # (as the videos: read in the worker, perhaps after an os.chdir)
     if isinstance(source, Tensor):

@@ -747,6 +747,13 @@ def test_landmarks_of_another_count_or_a_missing_file_are_refused_when_the_datas
                       (str(tmp_path), "a folder, not a landmarks file")):  # fmt: skip
         with pytest.raises(InputError, match=rf"a\.avi: landmarks: .*{what}"):
             VideoDataset([video, video], [points, bad])
+    # a glob pattern, as a shell or a Hydra config holds it, was "no such file or folder" / "no such landmarks file"
+    (tmp_path / "b.avi").write_bytes(b"")
+    with pytest.raises(InputError, match=r"\*\.avi: no such file or folder \(a pattern\? Nothing expands it here: "
+                                         r"sorted\(glob\.glob\(pattern\)\) gives the 2 paths it matches\)$"):
+        VideoDataset([tmp_path / "*.avi"], [points])
+    with pytest.raises(InputError, match=r"no such landmarks file \(a pattern\? .* gives the 0 paths it matches\)$"):
+        VideoDataset([video], [str(tmp_path / "*.csv")])
     # the layouts the worker reads (torchface.io.check_landmarks) are still taken: (1, 68, 2), (136,)
     data = VideoDataset([video] * 3, [points[None], points.reshape(-1), torch.zeros(68, 2, dtype=torch.bfloat16)])
     assert all(isinstance(lm, np.ndarray) for lm in data.landmarks)
