@@ -354,7 +354,7 @@ class NormalisedFaceLayer(DeviceCheckedModule):
         """Fit the first frames from their landmarks (Eq. 2) and build the templates (detached).
 
         Args:
-            frames: ``(B, 3, H, W)`` float in ``[0, 1]``.
+            frames: ``(B, 3, H, W)`` RGB or ``(B, 1, H, W)`` gray, float in ``[0, 1]``.
             landmarks_px: ``(B, K, 2)`` the model's landmarks (68 iBUG points for CANDIDE-3), pixels; NaN rows:
                 missing. A stream whose start fails (fewer than 4 landmarks: no face found; landmarks that hold no
                 pose, a face too small: :func:`~torchface.tracker.initialise`) is FAILED here and at every later
@@ -409,7 +409,8 @@ class NormalisedFaceLayer(DeviceCheckedModule):
         """Track ``(B, C, H, W)`` frames from ``state`` and return their normalised faces.
 
         Args:
-            frames: ``(B, 3, H, W)`` float in ``[0, 1]``, the next frame of each stream (may require grad).
+            frames: ``(B, 3, H, W)`` RGB or ``(B, 1, H, W)`` gray (as :meth:`initialise`'s), float in ``[0, 1]``, the
+                next frame of each stream (may require grad).
             state: the tracker state after the previous frame (:meth:`initialise` or an earlier call).
 
         Returns:
@@ -447,7 +448,7 @@ class NormalisedFaceLayer(DeviceCheckedModule):
         ``1 .. T-1`` go through :meth:`forward` one after another.
 
         Args:
-            clips: ``(B, T, 3, H, W)`` float in ``[0, 1]`` (may require grad).
+            clips: ``(B, T, 3, H, W)`` RGB or ``(B, T, 1, H, W)`` gray, float in ``[0, 1]`` (may require grad).
             landmarks_px: ``(B, K, 2)`` landmarks of frame 0, pixels.
             intrinsics: camera; default :meth:`Intrinsics.default` of the frame size.
 
