@@ -4,7 +4,8 @@
 Renders a few synthetic videos (torchface.synth; lossless, first-frame landmarks from the ground truth), then
 for each worker count runs a DataLoader over them twice with a fresh cache folder: epoch 1 tracks every frame
 (inside the workers) and fills the cache, epoch 2 (repeated, best and median reported) reads the cache. The
-issue's target is at least 200 faces/s with 2 workers from the cache. Wall time includes the workers' start.
+target is at least 200 faces/s with 2 workers from the cache, judged on runs of at least 192 faces (the
+default's 8 videos x 24 frames). Wall time includes the workers' start.
 
 Example:
     python scripts/benchmark_dataloader.py --videos 8 --frames 24 --json out/dataloader.json
@@ -35,6 +36,10 @@ from torchface.synth.sequence import load_ground_truth, write_sequence
 from training_hooks import DatasetConfig, FaceTrackingConfig, VideoDataset, loader_throughput
 
 SCENARIOS = ("expressions", "light_switch")
+
+#: The target (200 faces/s from the cache with 2 workers) is judged on epochs of at least this many faces, the
+#: default run's 8 videos x 24 frames: the wall time includes the workers' start, most of a shorter epoch.
+TARGET_MIN_FACES: int = 8 * 24
 
 
 def render_videos(root: Path, count: int, frames: int, width: int, height: int) -> tuple[list[Path], list[np.ndarray]]:
@@ -117,10 +122,18 @@ def main(argv: list[str] | None = None) -> int:
             }  # fmt: skip
             rows.append(row)
             print(f"{n:>7} {row['epoch1_faces_per_s']:>27.1f} {max(rates):>25.1f} / {statistics.median(rates):>10.1f}")
-    target = next((r["cached_faces_per_s_median"] for r in rows if r["workers"] == 2), None)
-    if target is not None:
-        print(f"target >= 200 faces/s with 2 workers from the cache: {'met' if target >= 200 else 'NOT met'} "
-              f"(median {target:.0f})")  # fmt: skip
+    two = next((r for r in rows if r["workers"] == 2), None)
+    if two is not None:
+        target = two["cached_faces_per_s_median"]
+        if two["faces"] < TARGET_MIN_FACES:
+            # (a smoke run of 12 faces read "NOT met (median 22)": the workers' start, in the wall time, is most of
+            # so short an epoch)
+            print(f"target >= 200 faces/s with 2 workers from the cache: not judged on {two['faces']} faces (median "
+                  f"{target:.0f}; the workers' start is most of so short an epoch: the target is for runs of at least "
+                  f"{TARGET_MIN_FACES} faces, the default 8 videos x 24 frames)")  # fmt: skip
+        else:
+            print(f"target >= 200 faces/s with 2 workers from the cache: {'met' if target >= 200 else 'NOT met'} "
+                  f"(median {target:.0f})")  # fmt: skip
     if args.json is not None:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         payload = {"settings": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()}, "rows": rows}

@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Expression classifier on normalised faces vs plain face crops, on held-out faces (issue 6, item 5).
+"""Expression classifier on normalised faces vs plain face crops, on held-out faces.
 
 Stages (each timed):
 
@@ -33,7 +33,8 @@ Stages (each timed):
    baseline (chosen on the test folds, which favours the baseline).
 
 The table gives the test accuracies per fold and pooled over the folds, the gain in points, the loader's
-throughput and the stage times. Target (issue 6): normalised beats crop by >= 10 points.
+throughput and the stage times. Target (the project's issue 6, item 5): normalised beats crop by >= 10 points,
+judged on full runs (``--quick`` says "not judged"; its JSON's ``target_met`` is null).
 
 Examples:
     python scripts/train_expression.py --out out/expression --json out/expression.json
@@ -562,8 +563,9 @@ def main(argv: list[str] | None = None) -> int:
         log(f"{row['held_out']:<16} {row['train']:>6} {row['test']:>6} " + " ".join(f"{row[n]:>12.1%}" for n in names)
             + f" {g:>11.1f}")  # fmt: skip
     log(f"{'pooled':<16} {'':>6} {tested:>6} " + " ".join(f"{pooled[n]:>12.1%}" for n in names) + f" {gain:>11.1f}")
-    target = "met" if gain >= 10 else "NOT met"
-    log(f"target: normalised beats the better crop baseline by >= 10 points: {target} ({gain:.1f})")
+    target_met = None if args.quick else gain >= 10  # (a --quick run's 10 test clips read "NOT met (0.0)")
+    target = {None: "not judged on a --quick run (too few clips and epochs)", True: "met", False: "NOT met"}
+    log(f"target: normalised beats the better crop baseline by >= 10 points: {target[target_met]} ({gain:.1f})")
     log("")
     log(f"data loading, {cfg.workers} workers, faces of {cfg.face_size}x{cfg.face_size} (every frame of every clip):")
     log(f"  epoch 1 (tracking): {thr1['faces_per_s']:8.1f} faces/s  ({thr1['faces']} faces in {thr1['seconds']:.1f} s)")
@@ -576,7 +578,7 @@ def main(argv: list[str] | None = None) -> int:
         figures = {
             "config": asdict(cfg), "seed": args.seed, "classes": list(EXPRESSION_CLASSES),
             "identities": [name for _, name, _ in _SUBJECTS], "clips": len(clips), "folds": folds,
-            "accuracy": pooled, "gain_points": gain, "target_met": gain >= 10,
+            "accuracy": pooled, "gain_points": gain, "target_met": target_met,
             "throughput_epoch1": thr1, "throughput_epoch2": thr2,
             "tracking": {"success": float(faces2["success"].float().mean()),
                          "yaw_error_median_deg": float(yaw_err.median())},

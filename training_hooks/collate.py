@@ -61,6 +61,7 @@ def collate_clips(
         batched; ``frame_mask`` ``(B, T)`` bool, True on real frames; ``lengths`` ``(B,)`` int64, the ``T_i``.
 
     Raises:
+        TypeError: ``batch`` is one item (a dict) rather than a list of them, or holds something other than dicts.
         ValueError: an empty batch, items with different keys, a per-frame tensor without a time axis, lengths
             that differ within an item, or trailing shapes that differ between items, or an integer and a float
             dtype under one key (a ``uint8`` face in ``[0, 255]`` and a float one in ``[0, 1]`` do not batch; float32
@@ -76,6 +77,13 @@ def collate_clips(
     if isinstance(per_frame_keys, (str, bytes)) or not isinstance(per_frame_keys, Collection):
         # (a string matched its substrings: "face" took 'face' alone as per-frame, then failed stacking confidences)
         raise TypeError(f"per_frame_keys must be a sequence of key names (a list), got {type(per_frame_keys).__name__}")
+    if isinstance(batch, dict):
+        # DataLoader(batch_size=None) calls collate_fn on each item: iterating the dict gave its keys, and the
+        # error read "collate_clips takes dict items, got ['str']"
+        raise TypeError(
+            "collate_clips takes a batch, a list of clip items (dicts), got one item (a dict): give the DataLoader a "
+            "batch_size (DataLoader(batch_size=None) calls collate_fn on each item), or collate_clips([item])"
+        )
     if len(batch) == 0:
         raise ValueError("collate_clips got an empty batch")
     if not all(isinstance(item, dict) for item in batch):

@@ -142,6 +142,7 @@ from __future__ import annotations
 import copy
 import enum
 import functools
+import glob
 import itertools
 import multiprocessing.util
 import os
@@ -184,7 +185,7 @@ from torchface.io.landmarks import NUM_LANDMARKS, check_landmarks, read_landmark
 from torchface.io.video import CONVERT_HINT, folder_of_videos_hint, image_files, open_capture, open_frames
 from torchface.model.face_model import FaceModel
 from training_hooks.cache import CacheStats, TrackCache, cache_key, content_hash
-from training_hooks.transforms import FaceTrackingConfig, NormaliseFaces, TrackedSequence
+from training_hooks.transforms import FaceTrackingConfig, NormaliseFaces, TrackedSequence, _landmarks_shape_hint
 
 __all__ = [
     "DatasetConfig",
@@ -802,8 +803,18 @@ def _check_exists(path: Path, given: str | os.PathLike[str]) -> None:
     files or .npy arrays (use FrameFolderDataset for folders)", or the other way round); ``path`` is the absolute
     path of the one ``given``."""
     if not path.exists():
-        link = " (a symbolic link to a missing target)" if path.is_symlink() else _tilde(given)
+        link = " (a symbolic link to a missing target)" if path.is_symlink() else _tilde(given) or _pattern(path)
         raise InputError(f"{path}: no such file or folder{link}")
+
+
+def _pattern(path: Path) -> str:
+    """A hint for a missing ``path`` that is a glob pattern (``"clips/*.mp4"``, as a shell or a Hydra config holds
+    it: it was told "no such file or folder" alone); "" otherwise."""
+    if not any(c in os.fspath(path) for c in "*?["):
+        return ""
+    n = len(glob.glob(os.fspath(path)))
+    return (f" (a pattern? Nothing expands it here: sorted(glob.glob(pattern)) gives the {n} "
+            f"path{'' if n == 1 else 's'} it matches)")  # fmt: skip
 
 
 def _holds_images(folder: Path) -> bool:
@@ -840,7 +851,9 @@ def _as_numpy(points: Tensor) -> np.ndarray:
     return (points.to(torch.float32) if points.dtype == torch.bfloat16 else points).numpy()
 
 
-def _kept_landmarks(source: LandmarkSource, video: Path, count: int) -> np.ndarray | str | os.PathLike:
+def _kept_landmarks(
+    source: LandmarkSource, video: Path, count: int, index: int = 0
+) -> np.ndarray | str | os.PathLike:
     """One video's landmarks as a dataset keeps them, checked as far as they can be without its frames.
 
     A tensor is kept as a NumPy array (``.detach().cpu().numpy()``, bfloat16 as float32: the values the landmark fit
@@ -856,7 +869,8 @@ def _kept_landmarks(source: LandmarkSource, video: Path, count: int) -> np.ndarr
     if isinstance(source, (str, os.PathLike)):
         path = Path(source)
         if not path.is_file():  # (read_landmarks' words)
-            problem = "a folder, not a landmarks file" if path.is_dir() else f"no such landmarks file{_tilde(source)}"
+            problem = ("a folder, not a landmarks file" if path.is_dir()
+                       else f"no such landmarks file{_tilde(source) or _pattern(path)}")  # fmt: skip
             raise InputError(f"{where}: {path}: {problem}")
         return path.absolute()  # (as the videos: read in the worker, perhaps after an os.chdir)
     if isinstance(source, Tensor):
@@ -867,7 +881,8 @@ def _kept_landmarks(source: LandmarkSource, video: Path, count: int) -> np.ndarr
     if len(shape) == 1 and shape[0] % 2 == 0:
         shape = (shape[0] // 2, 2)
     if len(shape) != 2 or shape[1] != 2:
-        raise InputError(f"{where}: expected {count} (x, y) points, got an array of shape {np.shape(source)}")
+        hint = _landmarks_shape_hint(tuple(np.shape(source)), count, f"landmarks[{index}]")
+        raise InputError(f"{where}: expected {count} (x, y) points, got an array of shape {np.shape(source)}{hint}")
     if shape[0] != count:
         what = "iBUG landmarks" if count == NUM_LANDMARKS else "landmarks (the face model's)"
         hint = "a missing point stays, as a NaN row"
@@ -1013,7 +1028,7 @@ class VideoDataset(IterableDataset):
                         f"landmarks[{i}] ({self.videos[i]}) must be a {one} array or tensor, or a landmarks file, "
                         f"got {type(source).__name__}{once}"
                     )
-            kept = tuple(_kept_landmarks(s, self.videos[i], num_landmarks) for i, s in enumerate(landmarks))
+            kept = tuple(_kept_landmarks(s, self.videos[i], num_landmarks, i) for i, s in enumerate(landmarks))
             self.detector, self.landmarks = None, kept
         if self.detector is not None and num_landmarks != NUM_LANDMARKS:
             raise ValueError(
@@ -1454,8 +1469,16 @@ class VideoDataset(IterableDataset):
 
         def find(frame: Tensor) -> np.ndarray | None:
             points = self.detector(detector_image(frame))  # type: ignore[misc]
+            if points is None:
+                return None
+            points = np.asarray(points)
+            if points.size == 0:  # (read "expected 68 iBUG landmarks, got 0": a detector's "no face" of its own)
+                raise InputError(
+                    f"{where}: the detector returned an empty array {points.shape}: a detector returns None where it "
+                    "finds no face (torchface.detect.Detector), and the search goes on to the next frame"
+                )
             # (half of them inside: dlib's predictor places the chin of a face at the frame's edge outside it)
-            return None if points is None else check_landmarks(np.asarray(points), W, H, where, min_inside=0.5)
+            return check_landmarks(points, W, H, where, min_inside=0.5)
 
         tick = self._frame_ticks(index, "searched for its first face")
         start, frame, points = search_first_face(

@@ -354,7 +354,7 @@ class NormalisedFaceLayer(DeviceCheckedModule):
         """Fit the first frames from their landmarks (Eq. 2) and build the templates (detached).
 
         Args:
-            frames: ``(B, 3, H, W)`` float in ``[0, 1]``.
+            frames: ``(B, 3, H, W)`` RGB or ``(B, 1, H, W)`` gray, float in ``[0, 1]``.
             landmarks_px: ``(B, K, 2)`` the model's landmarks (68 iBUG points for CANDIDE-3), pixels; NaN rows:
                 missing. A stream whose start fails (fewer than 4 landmarks: no face found; landmarks that hold no
                 pose, a face too small: :func:`~torchface.tracker.initialise`) is FAILED here and at every later
@@ -382,7 +382,21 @@ class NormalisedFaceLayer(DeviceCheckedModule):
         return _tracked(initialise)(self.model, config, frames, landmarks_px, intrinsics)
 
     def normalise(self, frames: Tensor, state: TrackerState, params: Tensor) -> NormalisedFaceResult:
-        """Resample ``(B, C, H, W)`` frames with ``(B, P)`` parameters and the state's shape and camera."""
+        """Resample ``(B, C, H, W)`` frames with ``(B, P)`` parameters and the state's shape and camera.
+
+        Frame by frame, frame 0's face is ``layer.normalise(frames0, state, state.params)`` with the state of
+        :meth:`initialise` (which returns a ``TrackResult``, no face): what :meth:`forward_clip` gives at ``t = 0``.
+
+        Args:
+            frames: ``(B, C, H, W)`` float in ``[0, 1]`` (may require grad: the gradient reaches them through the
+                resampling).
+            state: the tracker state whose shape coefficients, neutral expression and camera are used.
+            params: ``(B, P)`` packed pose, expression and light (``state.params``, or an unrolled step's).
+
+        Returns:
+            :class:`~torchface.normalise.NormalisedFaceResult`: ``image (B, C, G, G)``, ``mask (B, 1, G, G)``, with
+            ``G`` = :attr:`LayerConfig.size`.
+        """
         aa, t, alpha, light = self.param_layout.split(params)
         if self.config.keep_expression:  # the person's neutral: the first frame's fitted coefficients
             alpha = state.neutral_anim_coeffs(alpha).detach()
@@ -395,7 +409,8 @@ class NormalisedFaceLayer(DeviceCheckedModule):
         """Track ``(B, C, H, W)`` frames from ``state`` and return their normalised faces.
 
         Args:
-            frames: ``(B, 3, H, W)`` float in ``[0, 1]``, the next frame of each stream (may require grad).
+            frames: ``(B, 3, H, W)`` RGB or ``(B, 1, H, W)`` gray (as :meth:`initialise`'s), float in ``[0, 1]``, the
+                next frame of each stream (may require grad).
             state: the tracker state after the previous frame (:meth:`initialise` or an earlier call).
 
         Returns:
@@ -433,7 +448,7 @@ class NormalisedFaceLayer(DeviceCheckedModule):
         ``1 .. T-1`` go through :meth:`forward` one after another.
 
         Args:
-            clips: ``(B, T, 3, H, W)`` float in ``[0, 1]`` (may require grad).
+            clips: ``(B, T, 3, H, W)`` RGB or ``(B, T, 1, H, W)`` gray, float in ``[0, 1]`` (may require grad).
             landmarks_px: ``(B, K, 2)`` landmarks of frame 0, pixels.
             intrinsics: camera; default :meth:`Intrinsics.default` of the frame size.
 
@@ -449,7 +464,16 @@ class NormalisedFaceLayer(DeviceCheckedModule):
         if not isinstance(clips, Tensor):  # (a numpy clip was a ValueError, as a wrong shape; forward's a TypeError)
             raise TypeError(f"clips must be a torch.Tensor (B, T, 3, H, W), got {type(clips).__name__}")
         if clips.dim() != 5 or clips.shape[1] < 1:
-            raise ValueError(f"clips must be (B, T, 3, H, W) with T >= 1, got {tuple(clips.shape)}")
+            # (one clip's (T, C, H, W) was told the shape alone)
+            hint = " (one clip (T, C, H, W): clips[None])" if clips.dim() == 4 and clips.shape[1] in (1, 3) else ""
+            raise ValueError(f"clips must be (B, T, 3, H, W) with T >= 1, got {tuple(clips.shape)}{hint}")
+        if isinstance(landmarks_px, Tensor) and landmarks_px.dim() == 2:
+            # (initialise's "with B = 1 (one set per frame)": a clip takes one set, its first frame's)
+            hint = ": one clip's, landmarks_px[None]" if clips.shape[0] == 1 else ""
+            raise ValueError(
+                f"landmarks_px must be (B, K, 2), one set per clip, the first frame's: clips {tuple(clips.shape)} are "
+                f"B = {clips.shape[0]} clips, got landmarks_px {tuple(landmarks_px.shape)}{hint}"
+            )
         # (told of a frame's layout, clips[:, 0]'s: channels last was "frames.permute(0, 3, 1, 2)", which a clip
         # cannot take; uint8 clips, cast to the model's dtype first, were "values from 0 to 255")
         hint = ""

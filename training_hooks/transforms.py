@@ -414,6 +414,22 @@ def _layout_hint(frames: Tensor) -> str:
     return ""
 
 
+def _landmarks_shape_hint(shape: tuple[int, ...], count: int, name: str = "landmarks") -> str:
+    """What to do with first-frame landmarks of ``shape`` where ``(count, 2)`` was wanted ("" when nothing fits).
+
+    Example:
+        >>> _landmarks_shape_hint((2, 68), 68)
+        ' (x, y rows: landmarks.T)'
+    """
+    if shape == (2, count):
+        return f" (x, y rows: {name}.T)"
+    if shape == (count, 3):
+        return f" (x, y, z points, as 3D landmark detectors give them: {name}[:, :2])"
+    if len(shape) == 3 and shape[1:] == (count, 2) and shape[0] > 1:
+        return f" (a set per frame or per stream? one set, of the first frame: {name}[0])"
+    return ""
+
+
 def _landmarks_tensor(landmarks: object, count: int = 68) -> Tensor:
     """``(count, 2)`` first-frame landmarks (the model's ``K``) -> float64 tensor, validated.
 
@@ -429,7 +445,11 @@ def _landmarks_tensor(landmarks: object, count: int = 68) -> Tensor:
         raise TypeError(f"landmarks must be a ({count}, 2) array or tensor, or a TrackerState, got {got}")
     if tuple(landmarks.shape) != (count, 2):
         what = "iBUG points" if count == 68 else "points, the model's landmarks,"
-        raise ValueError(f"landmarks must be ({count}, 2) {what} in pixels, got {tuple(landmarks.shape)}")
+        shape = tuple(landmarks.shape)
+        hint = _landmarks_shape_hint(shape, count)
+        if shape == (1, count, 2):
+            hint = " (one set in a batch of one: landmarks[0])"
+        raise ValueError(f"landmarks must be ({count}, 2) {what} in pixels, got {shape}{hint}")
     # (too few points given: the Python API starts such a stream FAILED; a dataset's item would be junk)
     points = landmarks.detach().to(device="cpu", dtype=torch.float64).numpy()
     problem = missing_points_problem(points, "iBUG points" if count == 68 else "points")

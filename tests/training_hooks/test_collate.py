@@ -102,6 +102,8 @@ def test_bad_input():
         collate_clips([clip(2, 0, S=8), clip(2, 1, S=16)])
     with pytest.raises(TypeError, match="dict items"):
         collate_clips([(torch.zeros(2),)])
+    with pytest.raises(TypeError, match=r"got one item \(a dict\): give the DataLoader a batch_size"):
+        collate_clips(clip(2, 0))  # type: ignore[arg-type]  # DataLoader(batch_size=None, collate_fn=collate_clips)
     # One key as a string matched its substrings ("face" made 'face' alone per-frame: then a RuntimeError stacking
     # the clips' confidences of lengths 2 and 3); None was "argument of type 'NoneType' is not iterable".
     for keys in ("face", None):

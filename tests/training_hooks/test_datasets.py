@@ -729,6 +729,9 @@ def test_bad_landmarks_and_detector_fail_with_the_file_name(clips, config):
         list(VideoDataset([clip.video], [outside], cfg))
     with pytest.raises(InputError, match="no face"):
         list(VideoDataset([clip.video], lambda image: None, cfg))
+    # a detector's own "no face", an empty array, read "expected 68 iBUG landmarks, got 0"
+    with pytest.raises(InputError, match=r"returned an empty array \(0, 2\): a detector returns None where it finds"):
+        list(VideoDataset([clip.video], lambda image: np.zeros((0, 2)), cfg))
     with pytest.raises(InputError, match=str(clip.video.name)):
         list(DataLoader(VideoDataset([clip.video], [clip.landmarks[:60]], cfg), batch_size=None, num_workers=1))
 
@@ -775,11 +778,22 @@ def test_landmarks_of_another_count_or_a_missing_file_are_refused_when_the_datas
     video.write_bytes(b"")  # (never opened)
     points = np.zeros((68, 2))
     for bad, what in ((points[:67], "expected 68 iBUG landmarks, got 67"), (torch.zeros(5, 2), "got 5"),
-                      (np.zeros((68, 3)), r"expected 68 \(x, y\) points, got an array of shape \(68, 3\)"),
+                      (np.zeros((68, 3)), r"expected 68 \(x, y\) points, got an array of shape \(68, 3\) \(x, y, z "
+                                          r"points, as 3D landmark detectors give them: landmarks\[1\]\[:, :2\]\)"),
+                      (points.T, r"shape \(2, 68\) \(x, y rows: landmarks\[1\]\.T\)"),
+                      (np.stack([points] * 3), r"shape \(3, 68, 2\) \(a set per frame or per stream\? one set, of "
+                                               r"the first frame: landmarks\[1\]\[0\]\)"),
                       (tmp_path / "b.csv", "b.csv: no such landmarks file"),
                       (str(tmp_path), "a folder, not a landmarks file")):  # fmt: skip
         with pytest.raises(InputError, match=rf"a\.avi: landmarks: .*{what}"):
             VideoDataset([video, video], [points, bad])
+    # a glob pattern, as a shell or a Hydra config holds it, was "no such file or folder" / "no such landmarks file"
+    (tmp_path / "b.avi").write_bytes(b"")
+    with pytest.raises(InputError, match=r"\*\.avi: no such file or folder \(a pattern\? Nothing expands it here: "
+                                         r"sorted\(glob\.glob\(pattern\)\) gives the 2 paths it matches\)$"):
+        VideoDataset([tmp_path / "*.avi"], [points])
+    with pytest.raises(InputError, match=r"no such landmarks file \(a pattern\? .* gives the 0 paths it matches\)$"):
+        VideoDataset([video], [str(tmp_path / "*.csv")])
     # the layouts the worker reads (torchface.io.check_landmarks) are still taken: (1, 68, 2), (136,)
     data = VideoDataset([video] * 3, [points[None], points.reshape(-1), torch.zeros(68, 2, dtype=torch.bfloat16)])
     assert all(isinstance(lm, np.ndarray) for lm in data.landmarks)
@@ -849,6 +863,15 @@ def test_transform_rejects_bad_input(clips):
         normalise(frames[0], clips[0].landmarks)
     with pytest.raises(ValueError, match=r"\(68, 2\)"):
         normalise(frames, clips[0].landmarks[:10])
+    # other layouts of the points were told the wanted shape alone; now what to do, as the dataset and the layer say
+    lm = clips[0].landmarks
+    for bad, hint in ((lm[None], r"\(1, 68, 2\) \(one set in a batch of one: landmarks\[0\]\)"),
+                      (lm.T, r"\(2, 68\) \(x, y rows: landmarks\.T\)"),
+                      (np.c_[lm, np.zeros(68)], r"\(68, 3\) \(x, y, z points, .*: landmarks\[:, :2\]\)"),
+                      (np.stack([lm] * 6), r"\(6, 68, 2\) \(a set per frame or per stream\? one set, of the first "
+                                           r"frame: landmarks\[0\]\)")):  # fmt: skip
+        with pytest.raises(ValueError, match=rf"landmarks must be \(68, 2\) iBUG points in pixels, got {hint}$"):
+            normalise(frames, bad)
     with pytest.raises(ValueError, match="empty"):
         normalise(frames[:0], clips[0].landmarks)
     with pytest.raises(ValueError, match=r"frame 0: .*divide by 255"):  # 0-255 floats: refused, not tracked

@@ -329,6 +329,13 @@ def test_forward_clip_shapes_and_first_frame(model):
     # transpose (initialise's "with B = 1 (one set per frame)" suggested a set per frame)
     with pytest.raises(ValueError, match=r"one set per clip.*B = 1 clips of T = 2 frames.*clips.transpose\(0, 1\)"):
         layer.forward_clip(clips[:1], lms)
+    # one clip's (K, 2) landmarks were initialise's "with B = 1 (one set per frame)"; one clip (T, C, H, W) was told
+    # the shape alone
+    with pytest.raises(ValueError, match=r"one set per clip, the first frame's: .* B = 1 clips, got landmarks_px "
+                                         r"\(68, 2\): one clip's, landmarks_px\[None\]$"):
+        layer.forward_clip(clips[:1], lms[0])
+    with pytest.raises(ValueError, match=r"got \(2, 3, 32, 32\) \(one clip \(T, C, H, W\): clips\[None\]\)$"):
+        layer.forward_clip(clips[0], lms[:1])
 
 
 def test_double_moves_the_layer_model_and_layout(small):

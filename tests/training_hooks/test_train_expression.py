@@ -34,6 +34,8 @@ def test_quick_run(tmp_path, capsys):
     assert set(acc) == {"normalised", "crop", "crop_single"} and all(0.0 <= v <= 1.0 for v in acc.values())
     best_crop = max(acc["crop"], acc["crop_single"])
     assert abs(figures["gain_points"] - 100 * (acc["normalised"] - best_crop)) < 1e-9
+    # a --quick run's 10 test clips judged the target ("NOT met (0.0)"); the figures said False
+    assert "10 points: not judged on a --quick run" in text and figures["target_met"] is None
     assert len(list((out / "videos").glob("*.avi"))) == clips
 
 
