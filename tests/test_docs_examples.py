@@ -106,11 +106,12 @@ def test_readme_training_hooks_block_runs_and_gives_the_shapes_it_states(tmp_pat
         _write_avi(tmp_path / f"{stem}.avi", frames)
         np.savetxt(tmp_path / f"{stem}.csv", landmarks[0].numpy(), delimiter=",")
     code = _block("README.md", "Learning pipelines: `training_hooks`")
-    code = code.replace("    batch[", "    seen.append(batch)\n    batch[", 1)  # (keep each batch to check it)
+    code = re.sub(r"\n( +)batch\[", r"\n\1seen.append((epoch, batch))\n\1batch[", code, count=1)  # (kept to check)
     scope: dict = {"seen": []}
     exec(compile(code, "README.md", "exec"), scope)
-    batches = scope["seen"]
-    assert sum(len(b["video"]) for b in batches) == 2  # one 16-frame clip of each 20-frame video
+    batches = [batch for _, batch in scope["seen"]]
+    for epoch in (0, 1):  # one 16-frame clip of each 20-frame video, each epoch
+        assert sorted(v for e, b in scope["seen"] if e == epoch for v in b["video"].tolist()) == [0, 1], epoch
     for batch in batches:
         B = len(batch["video"])
         assert batch["face"].shape == (B, 16, 3, 128, 128) and batch["frame_mask"].shape == (B, 16)
