@@ -23,7 +23,7 @@ import math
 
 import torch
 
-from torchface._compiling import is_compiling
+from torchface._compiling import is_compiling, is_transformed
 from torchface._scalar import scalar
 from torchface.geometry._checks import check_batch, check_broadcast, check_exact_dim, check_tensor, promoted
 
@@ -259,6 +259,10 @@ def matrix_to_axis_angle(R: torch.Tensor) -> torch.Tensor:
     ratio_small = _horner(s2, _ASIN_OVER_S)
     ratio = torch.where(small, ratio_small, ratio_general)
     aa_regular = w * ratio.unsqueeze(-1)
+    if not (R.requires_grad or R.device.type != "cpu" or is_compiling() or is_transformed(R)) and not bool(
+        near_pi.any()
+    ):  # no angle above 120 degrees (a tracked face's): the near-pi branch would be computed to be dropped
+        return aa_regular  # (the values the torch.where below would copy; 25 operations, the host read is free here)
 
     # Near pi: axis from the symmetric part; its largest diagonal entry picks a well-scaled column.
     eye = (_so3_generators.__wrapped__ if is_compiling() else _so3_generators)(R.dtype, R.device)[1]
