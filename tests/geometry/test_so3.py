@@ -423,7 +423,9 @@ def _reference_log(R: torch.Tensor) -> torch.Tensor:
 def _reference_euler(R: torch.Tensor) -> torch.Tensor:
     """matrix_to_euler as first written (both branches' atan2 evaluated, then chosen): the oracle of the fast one."""
     finfo = torch.finfo(R.dtype)
-    r00, r01, r02, r10, r11, r12, r22 = (R[..., i, j] for i, j in ((0, 0), (0, 1), (0, 2), (1, 0), (1, 1), (1, 2), (2, 2)))
+    r00, r01, r02, r10, r11, r12, r22 = (
+        R[..., i, j] for i, j in ((0, 0), (0, 1), (0, 2), (1, 0), (1, 1), (1, 2), (2, 2))
+    )
     cos_p2 = r10 * r10 + r11 * r11
     pitch = torch.atan2(-r12, cos_p2.clamp(min=finfo.tiny).sqrt())
     locked = cos_p2 < finfo.eps

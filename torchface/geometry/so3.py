@@ -259,7 +259,7 @@ def matrix_to_axis_angle(R: torch.Tensor) -> torch.Tensor:
     ratio_small = _horner(s2, _ASIN_OVER_S)
     ratio = torch.where(small, ratio_small, ratio_general)
     aa_regular = w * ratio.unsqueeze(-1)
-    if not (R.requires_grad or R.device.type != "cpu" or is_compiling() or is_transformed(R)) and not bool(
+    if not (R.requires_grad or not R.is_cpu or is_compiling() or is_transformed(R)) and not bool(
         near_pi.any()
     ):  # no angle above 120 degrees (a tracked face's): the near-pi branch would be computed to be dropped
         return aa_regular  # (the values the torch.where below would copy; 25 operations, the host read is free here)
