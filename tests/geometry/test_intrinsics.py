@@ -194,3 +194,19 @@ def test_a_principal_point_outside_the_frame_alone_is_a_crop_not_a_mix_up() -> N
     for cx, cy in ((-250.0, 100.0), (500.0, 400.0), (127.5 - 400.0, 127.5)):  # (the last: 2 focal lengths off)
         assert mixed_up_intrinsics(Intrinsics(256, 256, 200.0, 200.0, cx, cy)) is None, (cx, cy)
     assert "are implausible" in str(mixed_up_intrinsics(Intrinsics(256, 256, 200.0, 200.0, 127.5 - 401.0, 127.5)))
+
+
+def test_the_mixed_up_warning_pickles_and_copies_with_its_camera() -> None:
+    """``MixedUpIntrinsics`` holds its camera beside the message (``args``: the message alone), so the default pickle
+    called ``MixedUpIntrinsics(message)``, a TypeError: a warning raised as an error (``-W error``) in a
+    ``multiprocessing`` worker could not be sent back, nor could the warning be deep-copied."""
+    import copy
+    import pickle
+
+    from torchface.geometry.camera import MixedUpIntrinsics
+
+    camera = Intrinsics(640, 480, 600.0, 319.5, 600.0, 239.5)
+    warning = MixedUpIntrinsics("intrinsics ... look mixed up", camera)
+    for copied in (pickle.loads(pickle.dumps(warning)), copy.deepcopy(warning), copy.copy(warning)):
+        assert type(copied) is MixedUpIntrinsics and str(copied) == str(warning) and copied.intrinsics == camera
+        assert copied.args == warning.args

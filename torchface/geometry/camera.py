@@ -226,6 +226,12 @@ class MixedUpIntrinsics(UserWarning):
         super().__init__(message)
         self.intrinsics = intrinsics
 
+    def __reduce__(self) -> tuple[type["MixedUpIntrinsics"], tuple[str, Intrinsics]]:
+        """Pickled and copied with its camera (``args`` holds the message alone, so the default pickle called
+        ``MixedUpIntrinsics(message)``, a ``TypeError``: a warning raised as an error, ``-W error``, in a
+        ``multiprocessing`` worker could not be sent back)."""
+        return type(self), (str(self), self.intrinsics)
+
 
 def mixed_up_intrinsics(intrinsics: Intrinsics) -> str | None:
     """A hint, as one line, where a frame's camera looks like a mix-up of the constructor's arguments, with the
