@@ -194,6 +194,11 @@ def test_a_principal_point_outside_the_frame_alone_is_a_crop_not_a_mix_up() -> N
     for cx, cy in ((-250.0, 100.0), (500.0, 400.0), (127.5 - 400.0, 127.5)):  # (the last: 2 focal lengths off)
         assert mixed_up_intrinsics(Intrinsics(256, 256, 200.0, 200.0, cx, cy)) is None, (cx, cy)
     assert "are implausible" in str(mixed_up_intrinsics(Intrinsics(256, 256, 200.0, 200.0, 127.5 - 401.0, 127.5)))
+    # a principal point at cx = -0.5 (a crop's left edge at it) with cy outside: a ZeroDivisionError (the larger
+    # frame's scale, 2 cx + 1 over W, divided by before it was tested)
+    assert mixed_up_intrinsics(Intrinsics(640, 480, 600.0, 600.0, -0.5, -100.0)) is None
+    assert "are implausible" in str(mixed_up_intrinsics(Intrinsics(640, 480, 600.0, 600.0, -0.5, 1500.0)))
+    assert "are implausible" in str(mixed_up_intrinsics(Intrinsics(640, 480, 1.0, 1.0, -0.5, -0.5)))
 
 
 def test_the_mixed_up_warning_pickles_and_copies_with_its_camera() -> None:

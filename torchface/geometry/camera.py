@@ -290,12 +290,13 @@ def mixed_up_intrinsics(intrinsics: Intrinsics) -> str | None:
         if min(a, b) > 0 and _fits(w, h, a, b, c, d, tight=True):
             return (f"intrinsics {given} look mixed up: {what} Likely meant: Intrinsics({w}, {h}, fx={a:g}, fy={b:g}, "
                     f"cx={c:g}, cy={d:g}), or Intrinsics.from_matrix(K, {w}, {h}) from a 3x3 calibration matrix")
-    a, b, d = fx / scale, fy / scale, (cy + 0.5) / scale - 0.5  # (that frame's camera scaled to these frames)
-    if scale >= 2 and abs(scale_y / scale - 1) <= 0.03 and _fits(w, h, a, b, (w - 1) / 2, d, tight=True):
-        return (f"intrinsics {given} look like the camera of a {w * scale:.0f}x{h * scale:.0f} frame (its centre the "
-                f"principal point), not scaled with these frames? Likely meant: Intrinsics({w}, {h}, fx={a:.6g}, "
-                f"fy={b:.6g}, cx={(w - 1) / 2:g}, cy={d:.6g}), intrinsics.scaled({1 / scale:.6g}); the camera of a "
-                "crop of a larger frame (its principal point) is right as given")  # fmt: skip
+    if scale >= 2 and abs(scale_y / scale - 1) <= 0.03:  # (divided by only here: it is 0 where cx = -0.5)
+        a, b, d = fx / scale, fy / scale, (cy + 0.5) / scale - 0.5  # (that frame's camera scaled to these frames)
+        if _fits(w, h, a, b, (w - 1) / 2, d, tight=True):
+            return (f"intrinsics {given} look like the camera of a {w * scale:.0f}x{h * scale:.0f} frame (its centre "
+                    f"the principal point), not scaled with these frames? Likely meant: Intrinsics({w}, {h}, "
+                    f"fx={a:.6g}, fy={b:.6g}, cx={(w - 1) / 2:g}, cy={d:.6g}), intrinsics.scaled({1 / scale:.6g}); "
+                    "the camera of a crop of a larger frame (its principal point) is right as given")  # fmt: skip
     if _crop_fits(w, h, fx, fy, cx, cy):  # (a principal point outside the frame alone: a crop of a larger frame)
         return None
     return (f"intrinsics {given} are implausible (fx more than {PLAUSIBLE_ASPECT:g} times fy or fy more than "
