@@ -151,6 +151,8 @@ def test_from_matrix_reads_opencvs_calibration_matrix_and_refuses_what_no_camera
         ((1500.0, 1500.0, 959.5, 719.5), r"the camera of a 1920x1440 frame \(its centre the principal point\), not "
                                          r"scaled with these frames\? Likely meant: Intrinsics\(640, 480, fx=500, "
                                          r"fy=500, cx=319.5, cy=239.5\), intrinsics.scaled\(0.333333\)"),
+        ((1200.0, 1200.0, 639.5, 479.5), r"the camera of a 1280x960 frame .* Likely meant: Intrinsics\(640, 480, "
+                                         r"fx=600, fy=600, cx=319.5, cy=239.5\), intrinsics.scaled\(0.5\)"),  # (2x)
         ((600.0, 600.0, 319.5, 239.5), None),
         ((300.0, 300.0, 900.0, 240.0), None),  # a crop of a larger frame: its principal point off the crop (62 deg.)
         ((5000.0, 5000.0, -3000.0, 3500.0), None),  # a telephoto frame's crop, many crop widths off its centre
@@ -161,8 +163,8 @@ def test_from_matrix_reads_opencvs_calibration_matrix_and_refuses_what_no_camera
         ((600.0 / 1.42, 600.0, 319.5, 239.5), None),  # PAL 16:9 DV's wide pixels (HDV's 4/3 too): were "implausible"
     ],
     ids=["opencv-order", "swapped", "normalised", "corner", "aspect", "wide-pixels-2", "far-outside", "size",
-         "not-scaled", "centred", "crop", "telephoto-crop", "off-frame", "off-centre", "edge", "non-square",
-         "anamorphic"],
+         "not-scaled", "not-scaled-2x", "centred", "crop", "telephoto-crop", "off-frame", "off-centre", "edge",
+         "non-square", "anamorphic"],
 )
 def test_mixed_up_intrinsics_are_named_with_the_likely_fix(given, said) -> None:
     """A camera whose numbers read as a mix-up of the constructor's arguments (OpenCV's matrix order, the principal
