@@ -201,6 +201,8 @@ def test_a_principal_point_outside_the_frame_alone_is_a_crop_not_a_mix_up() -> N
     assert mixed_up_intrinsics(Intrinsics(640, 480, 600.0, 600.0, -0.5, -100.0)) is None
     assert "are implausible" in str(mixed_up_intrinsics(Intrinsics(640, 480, 600.0, 600.0, -0.5, 1500.0)))
     assert "are implausible" in str(mixed_up_intrinsics(Intrinsics(640, 480, 1.0, 1.0, -0.5, -0.5)))
+    # a subnormal focal length, scaled to that larger frame's, is 0 (divided by: a ZeroDivisionError)
+    assert "are implausible" in str(mixed_up_intrinsics(Intrinsics(1, 1, 5e-324, 1.0, 0.5, 0.5)))
 
 
 def test_the_mixed_up_warning_pickles_and_copies_with_its_camera() -> None:

@@ -226,7 +226,7 @@ def _unscaled_hint(w: int, h: int, fx: float, fy: float, cx: float, cy: float, g
     if not (scale >= 2 and abs(scale_y / scale - 1) <= 0.03):  # (scale is 0 where cx = -0.5: tested first)
         return None
     a, b, d = fx / scale, fy / scale, (cy + 0.5) / scale - 0.5  # (that frame's camera scaled to these frames)
-    if not _fits(w, h, a, b, (w - 1) / 2, d, tight=True):
+    if not (min(a, b) > 0 and _fits(w, h, a, b, (w - 1) / 2, d, tight=True)):  # (a subnormal focal length: 0 here)
         return None
     return (f"intrinsics {given} look like the camera of a {w * scale:.0f}x{h * scale:.0f} frame (its centre the "
             f"principal point), not scaled with these frames? Likely meant: Intrinsics({w}, {h}, fx={a:.6g}, "
