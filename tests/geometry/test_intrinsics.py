@@ -151,6 +151,8 @@ def test_from_matrix_reads_opencvs_calibration_matrix_and_refuses_what_no_camera
         ((1500.0, 1500.0, 959.5, 719.5), r"the camera of a 1920x1440 frame \(its centre the principal point\), not "
                                          r"scaled with these frames\? Likely meant: Intrinsics\(640, 480, fx=500, "
                                          r"fy=500, cx=319.5, cy=239.5\), intrinsics.scaled\(0.333333\)"),
+        ((1200.0, 1200.0, 639.5, 479.5), r"the camera of a 1280x960 frame .* Likely meant: Intrinsics\(640, 480, "
+                                         r"fx=600, fy=600, cx=319.5, cy=239.5\), intrinsics.scaled\(0.5\)"),  # (2x)
         ((600.0, 600.0, 319.5, 239.5), None),
         ((300.0, 300.0, 900.0, 240.0), None),  # a crop of a larger frame: its principal point off the crop (62 deg.)
         ((5000.0, 5000.0, -3000.0, 3500.0), None),  # a telephoto frame's crop, many crop widths off its centre
@@ -161,8 +163,8 @@ def test_from_matrix_reads_opencvs_calibration_matrix_and_refuses_what_no_camera
         ((600.0 / 1.42, 600.0, 319.5, 239.5), None),  # PAL 16:9 DV's wide pixels (HDV's 4/3 too): were "implausible"
     ],
     ids=["opencv-order", "swapped", "normalised", "corner", "aspect", "wide-pixels-2", "far-outside", "size",
-         "not-scaled", "centred", "crop", "telephoto-crop", "off-frame", "off-centre", "edge", "non-square",
-         "anamorphic"],
+         "not-scaled", "not-scaled-2x", "centred", "crop", "telephoto-crop", "off-frame", "off-centre", "edge",
+         "non-square", "anamorphic"],
 )
 def test_mixed_up_intrinsics_are_named_with_the_likely_fix(given, said) -> None:
     """A camera whose numbers read as a mix-up of the constructor's arguments (OpenCV's matrix order, the principal
@@ -194,3 +196,26 @@ def test_a_principal_point_outside_the_frame_alone_is_a_crop_not_a_mix_up() -> N
     for cx, cy in ((-250.0, 100.0), (500.0, 400.0), (127.5 - 400.0, 127.5)):  # (the last: 2 focal lengths off)
         assert mixed_up_intrinsics(Intrinsics(256, 256, 200.0, 200.0, cx, cy)) is None, (cx, cy)
     assert "are implausible" in str(mixed_up_intrinsics(Intrinsics(256, 256, 200.0, 200.0, 127.5 - 401.0, 127.5)))
+    # a principal point at cx = -0.5 (a crop's left edge at it) with cy outside: a ZeroDivisionError (the larger
+    # frame's scale, 2 cx + 1 over W, divided by before it was tested)
+    assert mixed_up_intrinsics(Intrinsics(640, 480, 600.0, 600.0, -0.5, -100.0)) is None
+    assert "are implausible" in str(mixed_up_intrinsics(Intrinsics(640, 480, 600.0, 600.0, -0.5, 1500.0)))
+    assert "are implausible" in str(mixed_up_intrinsics(Intrinsics(640, 480, 1.0, 1.0, -0.5, -0.5)))
+    # a subnormal focal length, scaled to that larger frame's, is 0 (divided by: a ZeroDivisionError)
+    assert "are implausible" in str(mixed_up_intrinsics(Intrinsics(1, 1, 5e-324, 1.0, 0.5, 0.5)))
+
+
+def test_the_mixed_up_warning_pickles_and_copies_with_its_camera() -> None:
+    """``MixedUpIntrinsics`` holds its camera beside the message (``args``: the message alone), so the default pickle
+    called ``MixedUpIntrinsics(message)``, a TypeError: a warning raised as an error (``-W error``) in a
+    ``multiprocessing`` worker could not be sent back, nor could the warning be deep-copied."""
+    import copy
+    import pickle
+
+    from torchface.geometry.camera import MixedUpIntrinsics
+
+    camera = Intrinsics(640, 480, 600.0, 319.5, 600.0, 239.5)
+    warning = MixedUpIntrinsics("intrinsics ... look mixed up", camera)
+    for copied in (pickle.loads(pickle.dumps(warning)), copy.deepcopy(warning), copy.copy(warning)):
+        assert type(copied) is MixedUpIntrinsics and str(copied) == str(warning) and copied.intrinsics == camera
+        assert copied.args == warning.args

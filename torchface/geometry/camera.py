@@ -217,6 +217,23 @@ def _crop_fits(w: int, h: int, fx: float, fy: float, cx: float, cy: float) -> bo
         and abs(cy - (h - 1) / 2) <= PLAUSIBLE_OFF_AXIS * fy
 
 
+def _unscaled_hint(w: int, h: int, fx: float, fy: float, cx: float, cy: float, given: str) -> str | None:
+    """:func:`mixed_up_intrinsics`' hint where ``fx, fy, cx, cy`` look like the camera of a frame at least twice
+    as large, not scaled with these ``w x h`` frames: the principal point that frame's centre (the same scale along x
+    and y, to 3 %; at twice the size exactly, a centred camera's, it is the edge of this frame's bottom-right pixel,
+    inside the frame) and that frame's camera scaled to these frames a plausible one; None otherwise."""
+    scale, scale_y = (2 * cx + 1) / w, (2 * cy + 1) / h
+    if not (scale >= 2 and abs(scale_y / scale - 1) <= 0.03):  # (scale is 0 where cx = -0.5: tested first)
+        return None
+    a, b, d = fx / scale, fy / scale, (cy + 0.5) / scale - 0.5  # (that frame's camera scaled to these frames)
+    if not (min(a, b) > 0 and _fits(w, h, a, b, (w - 1) / 2, d, tight=True)):  # (a subnormal focal length: 0 here)
+        return None
+    return (f"intrinsics {given} look like the camera of a {w * scale:.0f}x{h * scale:.0f} frame (its centre the "
+            f"principal point), not scaled with these frames? Likely meant: Intrinsics({w}, {h}, fx={a:.6g}, "
+            f"fy={b:.6g}, cx={(w - 1) / 2:g}, cy={d:.6g}), intrinsics.scaled({1 / scale:.6g}); the camera of a "
+            "crop of a larger frame (its principal point) is right as given")
+
+
 class MixedUpIntrinsics(UserWarning):
     """The warning :func:`~torchface.tracker.step.initialise` gives with :func:`mixed_up_intrinsics`' hint (a
     ``UserWarning``); ``intrinsics`` is the camera it is of, for a front end that speaks of its own options
@@ -225,6 +242,12 @@ class MixedUpIntrinsics(UserWarning):
     def __init__(self, message: str, intrinsics: Intrinsics) -> None:
         super().__init__(message)
         self.intrinsics = intrinsics
+
+    def __reduce__(self) -> tuple[type["MixedUpIntrinsics"], tuple[str, Intrinsics]]:
+        """Pickled and copied with its camera (``args`` holds the message alone, so the default pickle called
+        ``MixedUpIntrinsics(message)``, a ``TypeError``: a warning raised as an error, ``-W error``, in a
+        ``multiprocessing`` worker could not be sent back)."""
+        return type(self), (str(self), self.intrinsics)
 
 
 def mixed_up_intrinsics(intrinsics: Intrinsics) -> str | None:
@@ -242,8 +265,9 @@ def mixed_up_intrinsics(intrinsics: Intrinsics) -> str | None:
     - OpenCV's matrix order ``fx, cx, fy, cy`` (``K``'s entries row by row) given as ``fx, fy, cx, cy``;
     - the principal point and the focal lengths swapped (``cx, cy, fx, fy``);
     - normalised intrinsics (``fx / W``, ``cx / W``: a focal length of about one pixel);
-    - the camera of a larger frame, not scaled with the frames (its principal point the larger frame's centre: a
-      calibration at 1920x1440 used for 640x480 frames);
+    - the camera of a frame at least twice as large, not scaled with the frames (its principal point the larger
+      frame's centre: a calibration at 1920x1440 used for 640x480 frames, ``Intrinsics.default(3840, 2160)`` for
+      1920x1080 ones);
     - a principal point at ``(0, 0)``, the top-left pixel (a transposed ``K`` read, or a camera whose image
       coordinates are centred; torchface's pixel centres are at integers from the top-left, the centre at
       ``((W - 1) / 2, (H - 1) / 2)``), or at ``(W, H)``, the frame's size.
@@ -267,13 +291,11 @@ def mixed_up_intrinsics(intrinsics: Intrinsics) -> str | None:
         return (f"intrinsics {given} put the principal point at the top-left pixel: a transposed K read (K[0, 2], "
                 f"K[1, 2] are cx, cy), or a camera in centred coordinates? torchface's pixel centres are at integers "
                 f"from the top-left, a centred camera's principal point ({(w - 1) / 2:g}, {(h - 1) / 2:g})")
-    if _fits(w, h, fx, fy, cx, cy, tight=False):
-        return None
+    if _fits(w, h, fx, fy, cx, cy, tight=False):  # (but a 2x larger frame's centre: its bottom-right corner's edge)
+        return _unscaled_hint(w, h, fx, fy, cx, cy, given)
     if abs(cx - w) <= 1 and abs(cy - h) <= 1 and _focal_lengths_fit(w, h, fx, fy):
         return (f"intrinsics {given} put the principal point at ({w}, {h}), the frame's size: a centred camera's "
                 f"principal point is ({(w - 1) / 2:g}, {(h - 1) / 2:g}), pixel centres at integers from the top-left")
-    # (the larger frame whose centre the principal point is, if it is one: the same scale along x and y, to 3 %)
-    scale, scale_y = (2 * cx + 1) / w, (2 * cy + 1) / h
     readings = (
         ("OpenCV's matrix order (fx, cx, fy, cy), K's entries row by row, given as (fx, fy, cx, cy)?",
          (fx, cx, fy, cy)),
@@ -284,12 +306,9 @@ def mixed_up_intrinsics(intrinsics: Intrinsics) -> str | None:
         if min(a, b) > 0 and _fits(w, h, a, b, c, d, tight=True):
             return (f"intrinsics {given} look mixed up: {what} Likely meant: Intrinsics({w}, {h}, fx={a:g}, fy={b:g}, "
                     f"cx={c:g}, cy={d:g}), or Intrinsics.from_matrix(K, {w}, {h}) from a 3x3 calibration matrix")
-    a, b, d = fx / scale, fy / scale, (cy + 0.5) / scale - 0.5  # (that frame's camera scaled to these frames)
-    if scale >= 2 and abs(scale_y / scale - 1) <= 0.03 and _fits(w, h, a, b, (w - 1) / 2, d, tight=True):
-        return (f"intrinsics {given} look like the camera of a {w * scale:.0f}x{h * scale:.0f} frame (its centre the "
-                f"principal point), not scaled with these frames? Likely meant: Intrinsics({w}, {h}, fx={a:.6g}, "
-                f"fy={b:.6g}, cx={(w - 1) / 2:g}, cy={d:.6g}), intrinsics.scaled({1 / scale:.6g}); the camera of a "
-                "crop of a larger frame (its principal point) is right as given")  # fmt: skip
+    unscaled = _unscaled_hint(w, h, fx, fy, cx, cy, given)
+    if unscaled is not None:
+        return unscaled
     if _crop_fits(w, h, fx, fy, cx, cy):  # (a principal point outside the frame alone: a crop of a larger frame)
         return None
     return (f"intrinsics {given} are implausible (fx more than {PLAUSIBLE_ASPECT:g} times fy or fy more than "

@@ -761,8 +761,8 @@ def fit_landmarks(
     Args:
         model: the face model; its landmark table gives the 3D points.
         landmarks_px: ``(B, K, 2)`` pixel positions of the model's landmarks (all of them, or those listed in
-            ``landmark_indices``). A NaN row (or an infinite one) marks a missing point; a row with one coordinate
-            alone is refused (:func:`check_landmark_values`).
+            ``landmark_indices``). A NaN row marks a missing point; a row with an infinite coordinate, or with one
+            coordinate NaN alone, is refused (:func:`check_landmark_values`).
         intrinsics: the camera.
         weights: ``(B, K)`` non-negative confidences ``w_k`` (0 = ignore), or None for all ones; NaN, infinite and
             negative ones are refused (:func:`check_landmark_values`). They multiply
