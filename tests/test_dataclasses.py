@@ -180,12 +180,14 @@ def test_real_settings_refuse_other_types_as_type_errors_naming_them():
     number, not str"), as a ValueError (``robust_c="4.685"``), or taken (``SolverConfig(step_tolerance="1e-8")``,
     ``LayerConfig(margin="0.05")``, ``FaceTrackingConfig(focal="300")``); a bool was taken as 0 or 1. A 0-d real
     tensor is taken as its Python number (it was "must be a real number, got Tensor" where a Python number was taken;
-    bool and complex ones, and a 1-element 1-D one, are refused)."""
+    bool and complex ones, a 1-element 1-D one, one that requires grad (its gradient was dropped silently) and a meta
+    one are refused)."""
     checked = 0
     for cls, base in _settings().items():
         for name, optional in _reals(cls).items():
             bads: tuple = ("0.5", True, np.bool_(False), [0.5], torch.tensor(True), torch.tensor(0.5 + 0j),
-                           torch.tensor([0.5])) + (() if optional else (None,))
+                           torch.tensor([0.5]), torch.tensor(0.5, requires_grad=True),
+                           torch.empty((), device="meta")) + (() if optional else (None,))
             for bad in bads:
                 with pytest.raises(TypeError, match=rf"\b{name} must be a real number"):
                     cls(**{**base, name: bad})
@@ -251,7 +253,8 @@ def test_settings_of_several_numbers_refuse_other_types_naming_them():
                 continue
             value = getattr(default, f.name)
             value = (1.0,) * 11 if value is None else value  # (expression_prior_weights: CANDIDE-3's 11 units)
-            for bad in ("1" * len(value), b"1" * len(value), ("0.5", *value[1:]), (True, *value[1:]), 3.0):
+            grad = torch.tensor(value, dtype=torch.float64, requires_grad=True)  # (its gradient was dropped silently)
+            for bad in ("1" * len(value), b"1" * len(value), ("0.5", *value[1:]), (True, *value[1:]), 3.0, grad):
                 message = rf"^{f.name}(\[0\])? must be (a (tuple of )?real number|three numbers)"
                 with pytest.raises(TypeError, match=message):
                     cls(**{**base, f.name: bad})

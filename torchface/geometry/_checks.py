@@ -116,8 +116,19 @@ def check_optional_real(value: object, name: str) -> float | None:
     return None if value is None else _check_real(value, name, " or None")
 
 
+def _refuse_grad(value: object, name: str, what: str = "a real number") -> None:
+    """A tensor that requires grad, or has no values (``meta``), given for a setting's plain number(s): a
+    ``TypeError`` (its ``.item()`` / ``.tolist()`` dropped the gradient silently, or raised torch's own error)."""
+    if isinstance(value, torch.Tensor) and (value.requires_grad or value.is_meta):
+        why = "requires grad (a setting is a plain number: its gradient would be lost here" if value.requires_grad \
+            else "is a meta tensor (no values"
+        raise TypeError(f"{name} must be {what}, got a tensor that {why}); pass float(x.detach()) or "
+                        "x.detach().tolist() where no gradient is meant")
+
+
 def _check_real(value: object, name: str, extra: str) -> float:
     if isinstance(value, (torch.Tensor, np.ndarray)) and value.ndim == 0:  # (as iterating a tensor gives)
+        _refuse_grad(value, name)
         number = value.item()  # (a bool or complex one: a bool or complex, refused)
         if isinstance(number, bool) or not isinstance(number, numbers.Real):
             raise TypeError(f"{name} must be a real number{extra}, got {type(value).__name__} {value!r}")
@@ -287,6 +298,7 @@ def check_reals(values: object, name: str, interval: str | None = None) -> tuple
         ValueError: an element lies outside ``interval``.
     """
     if isinstance(values, (np.ndarray, torch.Tensor)) and values.ndim == 1:
+        _refuse_grad(values, name, "a tuple of real numbers")
         values = values.tolist()
     if not isinstance(values, (tuple, list)):
         raise TypeError(f"{name} must be a tuple of real numbers, got {type(values).__name__} {values!r}")
