@@ -429,11 +429,17 @@ def test_shuffle_buffer_permutes_but_keeps_items(clips, config):
     plain = collect(VideoDataset(videos, lms, config), 0)  # fills the cache
     shuffled = VideoDataset(videos, lms, replace(config, shuffle_buffer=8, seed=5))
     order = lambda: [(int(i["video"]), int(i["frame"])) for i in shuffled]  # noqa: E731
-    first, again = order(), order()
+    first = order()
+    # a second iteration in the same epoch (an epoch loop without set_epoch) repeats the order: it was silent
+    with pytest.warns(RuntimeWarning, match=r"iterated again in epoch 0: .*call data\.set_epoch\(epoch\)"):
+        again = order()
     assert first == again and sorted(first) == sorted(plain)
     assert first != sorted(first)
     shuffled.set_epoch(1)
-    assert order() != first
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert order() != first  # a new epoch: no warning
+        order()  # the same epoch again: warned once per dataset already
     assert_items_equal(plain, collect(shuffled, 2), skip=("cached",))
 
 
