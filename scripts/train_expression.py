@@ -530,15 +530,17 @@ def main(argv: list[str] | None = None) -> int:
         inputs["crop_single"] = crop_images[:, 1]
     person_of = np.array([c.person for c in clips])
     folds = []
+    fold_accuracy: list[dict[str, float]] = []  # (each fold's accuracies per input, typed: a row holds them as objects)
     correct = dict.fromkeys(inputs, 0)
     tested = 0
     for f, held in enumerate(persons[: cfg.folds]):
         test = torch.from_numpy(person_of == held)
         train = ~test
         row: dict[str, object] = {"held_out": held, "train": int(train.sum()), "test": int(test.sum())}
+        fold_accuracy.append({})
         for name, x in inputs.items():
             acc = train_and_test(cfg, x[train], labels[train], x[test], labels[test], seed=args.seed * 10 + f)
-            row[name] = acc
+            row[name] = fold_accuracy[-1][name] = acc
             correct[name] += round(acc * int(test.sum()))
         tested += int(test.sum())
         folds.append(row)
@@ -558,8 +560,8 @@ def main(argv: list[str] | None = None) -> int:
         f"labelled crop alone (crop_single); {cfg.ensemble} CNNs of {cfg.epochs} epochs each")  # fmt: skip
     names = list(inputs)
     log(f"{'held-out person':<16} {'train':>6} {'test':>6} " + " ".join(f"{n:>12}" for n in names) + f" {'gain (pts)':>11}")
-    for row in folds:
-        g = 100 * (row["normalised"] - max(row[n] for n in names if n.startswith("crop")))
+    for row, accuracy in zip(folds, fold_accuracy):
+        g = 100 * (accuracy["normalised"] - max(accuracy[n] for n in names if n.startswith("crop")))
         log(f"{row['held_out']:<16} {row['train']:>6} {row['test']:>6} " + " ".join(f"{row[n]:>12.1%}" for n in names)
             + f" {g:>11.1f}")  # fmt: skip
     log(f"{'pooled':<16} {'':>6} {tested:>6} " + " ".join(f"{pooled[n]:>12.1%}" for n in names) + f" {gain:>11.1f}")

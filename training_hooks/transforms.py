@@ -433,6 +433,9 @@ def _landmarks_shape_hint(shape: tuple[int, ...], count: int, name: str = "landm
 def _landmarks_tensor(landmarks: object, count: int = 68) -> Tensor:
     """``(count, 2)`` first-frame landmarks (the model's ``K``) -> float64 tensor, validated.
 
+    ``(1, count, 2)`` (a batch of one) and ``(2 * count,)`` (``x0, y0, x1, ...``) are taken as ``(count, 2)``, as a
+    dataset's entry and a landmarks file (:func:`torchface.io.check_landmarks`) are.
+
     A missing point is a NaN row, which the landmark fit gives weight 0 (as :class:`~torchface.tracker.FaceTracker`
     takes it); the rules of a landmarks file (:func:`torchface.io.landmarks.missing_points_problem`): at least
     :data:`~torchface.tracker.fit.MIN_FIT_LANDMARKS` points given, no row with one coordinate NaN, nothing infinite.
@@ -443,12 +446,12 @@ def _landmarks_tensor(landmarks: object, count: int = 68) -> Tensor:
     if not isinstance(landmarks, Tensor):
         got = type(landmarks).__name__
         raise TypeError(f"landmarks must be a ({count}, 2) array or tensor, or a TrackerState, got {got}")
+    if tuple(landmarks.shape) in ((1, count, 2), (2 * count,)):  # the layouts a dataset's entry, a landmarks file
+        landmarks = landmarks.reshape(count, 2)  # and torchface.io.check_landmarks take: one rule (this refused them)
     if tuple(landmarks.shape) != (count, 2):
         what = "iBUG points" if count == 68 else "points, the model's landmarks,"
         shape = tuple(landmarks.shape)
         hint = _landmarks_shape_hint(shape, count)
-        if shape == (1, count, 2):
-            hint = " (one set in a batch of one: landmarks[0])"
         raise ValueError(f"landmarks must be ({count}, 2) {what} in pixels, got {shape}{hint}")
     # (too few points given: the Python API starts such a stream FAILED; a dataset's item would be junk)
     points = landmarks.detach().to(device="cpu", dtype=torch.float64).numpy()
@@ -479,7 +482,8 @@ def track_sequence(
             CANDIDE-3; tracking starts with :func:`~torchface.tracker.managed.initialise_managed`, as
             :meth:`FaceTracker.initialise <torchface.tracker.FaceTracker.initialise>` starts it; a missing point is
             a NaN row, left out of the landmark fit: at least :data:`~torchface.tracker.fit.MIN_FIT_LANDMARKS` (4)
-            given, no row with one coordinate NaN, nothing infinite, as ``torchface track`` takes a file's), or a
+            given, no row with one coordinate NaN, nothing infinite, as ``torchface track`` takes a file's; also
+            ``(1, K, 2)`` or ``(2K,)``, as a dataset's entry and a landmarks file's NPY are taken), or a
             :class:`~torchface.tracker.TrackerState` with ``B = 1`` (from this function or from the same tracker
             settings) whose tracking the frames continue (every frame goes through
             :func:`~torchface.tracker.managed.managed_step`); the state is left as it was, so the same frames

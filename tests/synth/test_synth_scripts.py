@@ -16,9 +16,13 @@ from _helpers import load_script as _load  # noqa: E402
 def test_make_sequence_then_overlay(tmp_path, capsys):
     make = _load("make_sequence")
     out = tmp_path / "seq"
-    assert make.main(["--scenario", "expressions", "--width", "64", "--height", "48", "--frames", "3", "--out", str(out)]) == 0
+    args = ["--scenario", "expressions", "--width", "64", "--height", "48", "--frames", "3", "--batch", "2"]
+    assert make.main([*args, "--out", str(out)]) == 0
     text = capsys.readouterr().out
     assert "3/3 frames" in text and "expressions.avi" in text
+    # not a terminal: whole progress lines (the first and the last), not \r redraws run together in a log
+    assert "\r" not in text and [line.split(" (")[0] for line in text.splitlines()[:2]] == [
+        "expressions: 2/3 frames", "expressions: 3/3 frames"]
     overlay = _load("overlay_landmarks")
     assert overlay.main([str(out / "expressions.avi"), "--frames", "0", "2", "--out", str(tmp_path / "ov")]) == 0
     text = capsys.readouterr().out

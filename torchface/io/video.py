@@ -159,6 +159,14 @@ def _problem_message(where: str, problems: list[str]) -> str:
     return f"{where}: frames are {what} (torchface takes 8-bit colour frames of even width and height): {CONVERT_HINT}"
 
 
+#: What a frame file's NaN pixels are told (:func:`frame_to_tensor`): why they are refused and what to do.
+NAN_PIXELS_HINT: str = (
+    "a frame file's pixels must be values; NaN marks a missing pixel only in the Python API's frame tensors "
+    "(FaceTracker, NormaliseFaces, NormalisedFaceLayer), which leave it out of the fit: fill them, "
+    "np.nan_to_num(frames, nan=0.0), or track the frames as a tensor"
+)
+
+
 def _float_range_problem(array: np.ndarray) -> str:
     """What a float frame outside [0, 1] holds, and what to do (:func:`frame_to_tensor`'s message; a clip of 0-255
     floats, ``frames.astype(np.float32)`` of 8-bit ones, was told only "float frames must be finite and in [0, 1]",
@@ -168,14 +176,19 @@ def _float_range_problem(array: np.ndarray) -> str:
     the same), with NumPy's remedies."""
     finite = array[np.isfinite(array)]
     parts = []
+    nan = bool(np.isnan(array).any())
     if finite.size < array.size:
-        parts.append("NaN" if np.isnan(array).any() else "infinite")
+        parts.append("NaN" if nan else "infinite")
     hint = ""
     if finite.size:
         lo, hi = float(finite.min()), float(finite.max())
         parts.append(f"values from {lo:.4g} to {hi:.4g}")
         scale = value_scale(lo, hi, int(np.count_nonzero(finite < 0.0)), int(finite.size))
         hint = value_scale_hint(scale, "np.clip(frames, 0, 1)", "divide by 255, or save them as uint8")
+    if nan:  # (deliberate: the tensor API's NaN pixels are missing ones, left out of the fit; a file's frames feed
+        # the 8-bit overlay and face videos too, and a NaN saved in one is more often damage than a mark; the bare
+        # refusal did not say that the tensor API takes them)
+        hint += f" ({NAN_PIXELS_HINT})"
     return "got " + " and ".join(parts) + hint
 
 
