@@ -445,8 +445,7 @@ def too_small(model: FaceModel, config: TrackerConfig, translation: Tensor, intr
     (one comparison; a depth at or behind the near plane or NaN is not too small: such estimates fail on their own)."""
     if config.min_face_width_px <= 0:
         return torch.zeros(translation.shape[0], dtype=torch.bool, device=translation.device)
-    depth = translation[:, 2]
-    return depth > scalar(intrinsics.fx * _landmark_width_mm(model) / config.min_face_width_px, depth)
+    return translation[:, 2] > intrinsics.fx * _landmark_width_mm(model) / config.min_face_width_px
 
 
 def _unit_weights(config: TrackerConfig, num_animation: int, like: Tensor) -> Tensor | None:
@@ -488,13 +487,10 @@ def expression_prior(
     if w is None and delta is None:
         return precision
     base = precision.to(alpha.dtype).unsqueeze(-1) if isinstance(precision, Tensor) else precision
-    if w is None:  # a float precision filled in (one operation; the values of ones * precision)
-        out = torch.full_like(alpha, base) if isinstance(base, float) else torch.ones_like(alpha) * base
-    else:
-        out = base * w
+    out = torch.ones_like(alpha) * base if w is None else base * w
     if delta is not None:
         size = (alpha if mean is None else alpha - mean.to(alpha)).abs()
-        factor = size.clamp_min(delta).reciprocal() * scalar(delta, size)  # what `delta / tensor` computes
+        factor = delta / size.clamp_min(delta)
         if plain is not None:
             factor = torch.where(plain.to(alpha.device).unsqueeze(-1), torch.ones_like(factor), factor)
         out = out * factor
@@ -1691,15 +1687,12 @@ def face_crop(
     lo, hi = uv.amin(1), uv.amax(1)  # (B, 2)
     size = (hi - lo).amax(-1)  # (B,)
     q = 2 ** (config.num_levels - 1)
-    if size.numel():
-        side = int(torch.ceil(size.max() * scalar(1 + 2 * config.crop_margin, size) + scalar(MIN_CROP_PX, size)).item())
-    else:
-        side = W
+    side = int(torch.ceil(size.max() * (1 + 2 * config.crop_margin) + MIN_CROP_PX).item()) if size.numel() else W
     # (a level pyr_down halves has 3 pixels a side or more: a tiny face with TrackerConfig(num_levels=8) crashed)
     side = max(side, 3 * 2 ** (config.num_levels - 2))
     side = ((side + q - 1) // q) * q
     cw, ch = min(W, side), min(H, side)
-    centre = scalar(0.5, lo) * (lo + hi)
+    centre = 0.5 * (lo + hi)
     x0 = _round_down(torch.round(centre[:, 0] - cw / 2).long(), q).clamp(0, (W - cw) // q * q)
     y0 = _round_down(torch.round(centre[:, 1] - ch / 2).long(), q).clamp(0, (H - ch) // q * q)
     return torch.stack([x0, y0], dim=-1), ch, cw
@@ -2107,12 +2100,11 @@ def _finish(
     mean_i = (sampled * vf).sum(-1) / count
     std_i = (((sampled - mean_i.unsqueeze(-1)) ** 2 * vf).sum(-1) / count).sqrt()
     rms = ((r**2 * vf).sum(-1) / count).sqrt()
-    few = n_valid < scalar(config.min_points, n_valid)
-    failed = solver_failed | few | (std_i < scalar(config.min_contrast, std_i)) | ~torch.isfinite(x).all(-1)
+    failed = solver_failed | (n_valid < config.min_points) | (std_i < config.min_contrast) | ~torch.isfinite(x).all(-1)
     x = torch.where(failed.unsqueeze(-1), state.params, x)
     status = torch.where(failed, int(TrackStatus.FAILED), status)
     frac = n_valid.to(x.dtype) / tpl.num_points.clamp_min(1).to(x.dtype)
-    confidence = frac.clamp(0, 1) * torch.exp(-((rms / scalar(0.1, rms)) ** 2)) * (~failed)
+    confidence = frac.clamp(0, 1) * torch.exp(-((rms / 0.1) ** 2)) * (~failed)
     if config.min_face_width_px > 0:  # a face too small to track well (TrackerConfig.min_face_width_px)
         t = layout.split(x)[1]
         small = too_small(model, config, t, state.intrinsics)
