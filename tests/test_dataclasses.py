@@ -136,7 +136,8 @@ def test_int_settings_refuse_other_types_as_type_errors_and_take_numpy_integers(
     """A float, string or bool count was a ValueError in some settings ("max_frames must be an int >= 2") and a
     TypeError in others, or was taken (``JobConfig(normalised_size=128.0)``, ``LayerConfig(unrolled_levels=1.0)``,
     ``LookaheadConfig(min_keyframes=True)``, ``DatasetConfig(seed=None)``); numpy integers were refused by some
-    (``max_batch``, ``TemplateConfig``'s counts) and kept as numpy scalars by others."""
+    (``max_batch``, ``TemplateConfig``'s counts) and kept as numpy scalars by others. A 0-d integer tensor or array is
+    taken as its int (it was refused, where a number setting took a 0-d real one)."""
     checked = 0
     for cls, base in _settings().items():
         for name, kind in _kinds(cls).items():
@@ -144,8 +145,8 @@ def test_int_settings_refuse_other_types_as_type_errors_and_take_numpy_integers(
                 continue
             value = getattr(cls(**base), name)
             value = _VALID_FOR_NONE[name] if value is None else value
-            if kind == "int":
-                bads: tuple = (float(value), str(value), True)
+            if kind == "int":  # (a 0-d float or bool tensor is not a count either; a 0-d integer one is, as below)
+                bads: tuple = (float(value), str(value), True, torch.tensor(float(value)), torch.tensor(True))
                 numpy_value: object = np.int64(value)
             else:
                 bads = ((float(value[0]), *value[1:]), (str(value[0]), *value[1:]), (True, *value[1:]))
@@ -156,6 +157,9 @@ def test_int_settings_refuse_other_types_as_type_errors_and_take_numpy_integers(
             got = getattr(cls(**{**base, name: numpy_value}), name)
             if kind == "int":
                 assert type(got) is int and got == value, (cls.__name__, name)
+                for zero_d in (torch.tensor(value), np.array(value)):  # (refused before, where a 0-d real was taken)
+                    got = getattr(cls(**{**base, name: zero_d}), name)
+                    assert type(got) is int and got == value, (cls.__name__, name, zero_d)
             else:
                 assert type(got) is tuple and all(type(v) is int for v in got) and got == tuple(value), (cls.__name__, name)
             checked += 1

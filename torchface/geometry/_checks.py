@@ -60,7 +60,8 @@ def check_bool(value: object, name: str) -> bool:
 
 
 def check_int(value: object, name: str, low: int | None = None) -> int:
-    """``value`` as a Python int: an ``int`` or a numpy integer (``np.int64(32)``), never a bool.
+    """``value`` as a Python int: an ``int``, a numpy integer (``np.int64(32)``) or a 0-d integer tensor or array
+    (``torch.tensor(32)``, as :func:`check_real` takes a 0-d real one), never a bool.
 
     The settings' one rule for counts and sizes, PyTorch's convention: a value of the wrong type (``2.0``, ``"3"``,
     ``True``) is a ``TypeError``, one out of range a ``ValueError``; both messages say what was expected. Numpy
@@ -85,6 +86,11 @@ def check_optional_int(value: object, name: str, low: int | None = None) -> int 
 
 def _check_int(value: object, name: str, low: int | None, extra: str) -> int:
     want = ("an int" if low is None else f"an int >= {low}") + extra
+    if isinstance(value, (torch.Tensor, np.ndarray)) and value.ndim == 0:
+        _refuse_grad(value, name, want)
+        item = value.item()  # (a 0-d integer tensor or array as its int, as check_real takes a 0-d real one)
+        if isinstance(item, int) and not isinstance(item, bool):
+            value = item
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Integral):
         raise TypeError(f"{name} must be {want}, got {type(value).__name__} {value!r}")
     if low is not None and value < low:
@@ -120,10 +126,9 @@ def _refuse_grad(value: object, name: str, what: str = "a real number") -> None:
     """A tensor that requires grad, or has no values (``meta``), given for a setting's plain number(s): a
     ``TypeError`` (its ``.item()`` / ``.tolist()`` dropped the gradient silently, or raised torch's own error)."""
     if isinstance(value, torch.Tensor) and (value.requires_grad or value.is_meta):
-        why = "requires grad (a setting is a plain number: its gradient would be lost here" if value.requires_grad \
-            else "is a meta tensor (no values"
-        raise TypeError(f"{name} must be {what}, got a tensor that {why}); pass float(x.detach()) or "
-                        "x.detach().tolist() where no gradient is meant")
+        why = ("requires grad (a setting is a plain number: its gradient would be lost here); pass float(x.detach()) "
+               "or x.detach().tolist() where no gradient is meant") if value.requires_grad else "is a meta one (no values)"
+        raise TypeError(f"{name} must be {what}, got a tensor that {why}")
 
 
 def _check_real(value: object, name: str, extra: str) -> float:
