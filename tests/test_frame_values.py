@@ -12,6 +12,7 @@ import torch
 
 from torchface._frame_values import TENSOR_CLIP, ValueScale, check_frame_values, value_scale, value_scale_hint
 from torchface.io import InputError, open_frames
+from torchface.io.video import NAN_PIXELS_HINT
 
 #: ImageNet networks' per-channel (R, G, B) mean and standard deviation.
 IMAGENET_MEAN, IMAGENET_STD = np.array([0.485, 0.456, 0.406]), np.array([0.229, 0.224, 0.225])
@@ -63,8 +64,9 @@ def test_a_tensor_and_an_array_of_the_same_values_are_told_the_same(tmp_path, fr
     np.save(tmp_path / "f.npy", np.stack([frame, frame]))
     with pytest.raises(InputError) as info:
         open_frames(tmp_path / "f.npy")
-    nan = "NaN and " if np.isnan(frame).any() else ""
-    assert str(info.value).endswith(f"got {nan}{said}{value_scale_hint(scale, *ARRAY_WORDS)}"), str(info.value)
+    nan = "NaN and " if np.isnan(frame).any() else ""  # (a file's NaN pixels: why they are refused, after the scale)
+    why = f" ({NAN_PIXELS_HINT})" if nan else ""
+    assert str(info.value).endswith(f"got {nan}{said}{value_scale_hint(scale, *ARRAY_WORDS)}{why}"), str(info.value)
 
 
 def test_the_tensor_message_is_the_same_under_a_torch_func_transform():
