@@ -154,6 +154,10 @@ def test_int_settings_refuse_other_types_as_type_errors_and_take_numpy_integers(
             for bad in bads:
                 with pytest.raises(TypeError, match=rf"\b{name}(\[0\])? must be an int"):
                     cls(**{**base, name: bad})
+            if kind == "int":  # (one that requires grad is a float one, refused as such: it was told to pass float(x))
+                wanted = rf"\b{name} must be an int[^;]*, got Tensor tensor\(2\.50*, requires_grad=True\)$"
+                with pytest.raises(TypeError, match=wanted):
+                    cls(**{**base, name: torch.tensor(2.5, requires_grad=True)})
             got = getattr(cls(**{**base, name: numpy_value}), name)
             if kind == "int":
                 assert type(got) is int and got == value, (cls.__name__, name)

@@ -216,6 +216,7 @@ def test_the_mixed_up_warning_pickles_and_copies_with_its_camera() -> None:
 
     camera = Intrinsics(640, 480, 600.0, 319.5, 600.0, 239.5)
     warning = MixedUpIntrinsics("intrinsics ... look mixed up", camera)
+    warning.add_note("while initialising stream 3")  # (kept, as the default pickle keeps an exception's notes)
     for copied in (pickle.loads(pickle.dumps(warning)), copy.deepcopy(warning), copy.copy(warning)):
         assert type(copied) is MixedUpIntrinsics and str(copied) == str(warning) and copied.intrinsics == camera
-        assert copied.args == warning.args
+        assert copied.args == warning.args and copied.__notes__ == ["while initialising stream 3"]

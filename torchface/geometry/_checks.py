@@ -86,8 +86,10 @@ def check_optional_int(value: object, name: str, low: int | None = None) -> int 
 
 def _check_int(value: object, name: str, low: int | None, extra: str) -> int:
     want = ("an int" if low is None else f"an int >= {low}") + extra
-    if isinstance(value, (torch.Tensor, np.ndarray)) and value.ndim == 0:
-        _refuse_grad(value, name, want)
+    # (a tensor that requires grad is a float one: refused below as any 0-d float is, not told to pass float(x))
+    grad = isinstance(value, torch.Tensor) and value.requires_grad
+    if isinstance(value, (torch.Tensor, np.ndarray)) and value.ndim == 0 and not grad:
+        _refuse_grad(value, name, want)  # (a meta one)
         item = value.item()  # (a 0-d integer tensor or array as its int, as check_real takes a 0-d real one)
         if isinstance(item, int) and not isinstance(item, bool):
             value = item
@@ -127,7 +129,8 @@ def _refuse_grad(value: object, name: str, what: str = "a real number") -> None:
     ``TypeError`` (its ``.item()`` / ``.tolist()`` dropped the gradient silently, or raised torch's own error)."""
     if isinstance(value, torch.Tensor) and (value.requires_grad or value.is_meta):
         why = ("requires grad (a setting is a plain number: its gradient would be lost here); pass float(x.detach()) "
-               "or x.detach().tolist() where no gradient is meant") if value.requires_grad else "is a meta one (no values)"
+               "or x.detach().tolist() where no gradient is meant") if value.requires_grad \
+            else "is a meta one (no values)"
         raise TypeError(f"{name} must be {what}, got a tensor that {why}")
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 import numbers
 from dataclasses import dataclass
-from typing import cast
+from typing import Any, cast
 
 import numpy as np
 import torch
@@ -243,11 +243,12 @@ class MixedUpIntrinsics(UserWarning):
         super().__init__(message)
         self.intrinsics = intrinsics
 
-    def __reduce__(self) -> tuple[type["MixedUpIntrinsics"], tuple[str, Intrinsics]]:
+    def __reduce__(self) -> tuple[type["MixedUpIntrinsics"], tuple[str, Intrinsics], dict[str, Any]]:
         """Pickled and copied with its camera (``args`` holds the message alone, so the default pickle called
         ``MixedUpIntrinsics(message)``, a ``TypeError``: a warning raised as an error, ``-W error``, in a
-        ``multiprocessing`` worker could not be sent back)."""
-        return type(self), (str(self), self.intrinsics)
+        ``multiprocessing`` worker could not be sent back), and its other attributes as the default keeps them
+        (``add_note``'s ``__notes__``)."""
+        return type(self), (str(self), self.intrinsics), self.__dict__
 
 
 def mixed_up_intrinsics(intrinsics: Intrinsics) -> str | None:
