@@ -254,8 +254,8 @@ class RankBalance(enum.Enum):
 
 
 #: A dataset's attributes in shared memory (:func:`_shared_state`, :func:`_shared_detections`, :func:`_shared_skips`,
-#: :func:`_shared_frames`, :func:`_shared_epoch_sets`).
-_SHARED_STATE: tuple[str, ...] = ("_shared", "_found_at", "_found", "_skips", "_frames", "_epoch_sets")
+#: :func:`_shared_frames`).
+_SHARED_STATE: tuple[str, ...] = ("_shared", "_found_at", "_found", "_skips", "_frames")
 
 #: Entries of a dataset's shared state (:func:`_shared_state`).
 _EPOCH, _WARNED, _COUNTS = 0, 1, 2
@@ -306,14 +306,6 @@ def _shared_frames(num_videos: int) -> Tensor:
     if num_videos:
         state[0] = 0
     return state.share_memory_()
-
-
-def _shared_epoch_sets() -> Tensor:
-    """``(1,)`` int64 in shared memory as :func:`_shared_state`: how many times the dataset's epoch was set
-    (:meth:`VideoDataset.set_epoch`), part of each process's record of its last iteration
-    (:meth:`VideoDataset._warn_same_epoch`): a persistent ``DataLoader`` worker sees a ``set_epoch`` to the epoch it
-    had (a peek, a validation's sanity check, then the epoch set again: it warned of a forgotten ``set_epoch``)."""
-    return torch.zeros(1, dtype=torch.int64).share_memory_()
 
 
 #: :func:`_shared_frames`' entry of a skipped video.
@@ -1052,7 +1044,6 @@ class VideoDataset(IterableDataset):
         self._skips = _shared_skips(len(self.videos) if self.config.keep_going else 0)
         short = self.config.clip_length is not None and not self.config.keep_short_clips
         self._frames = _shared_frames(len(self.videos) if short else 0)
-        self._epoch_sets = _shared_epoch_sets()
         self._claims: _Claims | None = _Claims()  # (the once-per-dataset warnings' markers)
         self._progress: _CountProgress | None = None  # (what this process says the progress of now, if anything)
 
@@ -1093,8 +1084,6 @@ class VideoDataset(IterableDataset):
             state["_skips"] = _shared_skips(0)
         if "_frames" not in state:  # pickled before short videos were reported
             state["_frames"] = _shared_frames(0)
-        if "_epoch_sets" not in state:  # (pickled before the epoch's settings were counted)
-            state["_epoch_sets"] = torch.zeros(1, dtype=torch.int64)
         state.setdefault("_claims", None)  # (pickled before the claims: the flags alone, as then)
         state["_progress"] = None  # (this process's own)
         for name in _SHARED_STATE:  # (read back from a plain pickle, by value: an independent dataset, whose own
@@ -1129,9 +1118,9 @@ class VideoDataset(IterableDataset):
     @epoch.setter
     def epoch(self, epoch: int) -> None:
         self._shared[_EPOCH] = check_int(epoch, "epoch", 0)
-        # (an epoch set, in every process: an iteration before it, a peek next(iter(data)) then set_epoch(0), is no
-        # forgotten set_epoch; it warned as one, _warn_same_epoch)
-        self._epoch_sets += 1
+        # (an epoch set: an iteration before it, a peek next(iter(data)) then set_epoch(0), is no forgotten set_epoch;
+        # it warned as one, _warn_same_epoch)
+        self.__dict__.pop("_iterated", None)
 
     def set_epoch(self, epoch: int) -> None:
         """Set the epoch that seeds the shuffling (call before each epoch's ``DataLoader`` iteration). The
@@ -1872,12 +1861,13 @@ class VideoDataset(IterableDataset):
 
     def _warn_same_epoch(self) -> None:
         """Warn (a ``RuntimeWarning``, once per dataset) where this process iterates this dataset object a second
-        time in the same epoch with no epoch set between (:meth:`set_epoch`, counted in shared memory:
-        :func:`_shared_epoch_sets`): a shuffled epoch loop without :meth:`set_epoch` repeated the first epoch's order
-        every epoch, silently. Seen where it is cheap and sure: the same object in the same process
-        (``num_workers=0``, a persistent worker); a worker started afresh each epoch sees one iteration."""
-        # (a forked worker inherits the record of its parent: another pid)
-        seen = (os.getpid(), self.epoch, int(self._epoch_sets[0]))
+        time in the same epoch with no epoch set between (:meth:`set_epoch`, which forgets the record in this
+        process): a shuffled epoch loop without :meth:`set_epoch` repeated the first epoch's order every epoch,
+        silently. Seen where it is cheap and sure, with no shared state: the same object in the same process
+        (``num_workers=0``, a persistent worker); a worker started afresh each epoch sees one iteration. A
+        persistent worker is not told of a :meth:`set_epoch` to the epoch it had: an iteration cut short (a peek,
+        ``next(iter(loader))``) then the same epoch set again warns there."""
+        seen = (os.getpid(), self.epoch)  # (a forked worker inherits the record of its parent: another pid)
         last, self._iterated = getattr(self, "_iterated", None), seen
         if last == seen and self._claim("same-epoch"):
             warnings.warn(

@@ -111,7 +111,7 @@ class TrackingQualityCallback(pl.Callback):
 class _EpochLoader(DataLoader):
     """A ``DataLoader`` that hands its dataset ``epoch()`` (:meth:`VideoDataset.set_epoch
     <training_hooks.datasets.VideoDataset.set_epoch>`; None: left as it is) each time an epoch's iteration starts
-    (:class:`TrackedFaceDataModule`'s loaders)."""
+    (:class:`TrackedFaceDataModule`'s training loader)."""
 
     def __init__(self, *args: Any, epoch: Callable[[], int | None], **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
@@ -202,9 +202,7 @@ class TrackedFaceDataModule(pl.LightningDataModule):
     (:attr:`DatasetConfig.shuffle_buffer <training_hooks.datasets.DatasetConfig.shuffle_buffer>`) draws a new order
     every epoch with the trainer's defaults too (Lightning builds the loader once and calls ``set_epoch`` on samplers
     alone, which an iterable dataset's loader has none of: every epoch repeated the first one's order unless the
-    trainer had ``reload_dataloaders_every_n_epochs=1``). The validation loader's iterations do so too (the sanity
-    check's and the epoch's validation share the epoch's order; a shuffled validation set warned of a forgotten
-    ``set_epoch`` there).
+    trainer had ``reload_dataloaders_every_n_epochs=1``).
 
     Distributed (DDP) training: each rank's loaders yield that rank's share of the videos (video ``i`` -> rank
     ``i % world_size``, :mod:`training_hooks.datasets`, "Sharding"; the datasets are iterable, so Lightning adds no
@@ -277,19 +275,18 @@ class TrackedFaceDataModule(pl.LightningDataModule):
             return False
         return trainer.strategy.root_device.type == "cuda"
 
-    def _loader(self, dataset: VideoDataset, train: bool = False) -> DataLoader:
+    def _loader(self, dataset: VideoDataset, epochs: bool = False) -> DataLoader:
         collate = self.collate_fn
         if collate is None and dataset.config.clip_length is not None:
             collate = collate_clips
         kwargs: dict[str, Any] = dict(
             batch_size=self.batch_size, num_workers=self.num_workers, collate_fn=collate, pin_memory=self._pin(),
-            drop_last=self.drop_last and train, timeout=self.timeout, persistent_workers=self.persistent_workers,
+            drop_last=self.drop_last and epochs, timeout=self.timeout, persistent_workers=self.persistent_workers,
             prefetch_factor=self.prefetch_factor, multiprocessing_context=self.multiprocessing_context,
         )  # fmt: skip
-        # (the validation loader too: a shuffled validation set, DatasetConfig shared with the training set, was
-        # iterated by the sanity check and each validation with no set_epoch, and warned to call it, which its user
-        # cannot: VideoDataset._warn_same_epoch)
-        return _EpochLoader(dataset, epoch=self._trainer_epoch, **kwargs)
+        if epochs:
+            return _EpochLoader(dataset, epoch=self._trainer_epoch, **kwargs)
+        return DataLoader(dataset, **kwargs)
 
     def _trainer_epoch(self) -> int | None:
         """The attached trainer's current epoch, or None without a trainer."""
@@ -300,7 +297,7 @@ class TrackedFaceDataModule(pl.LightningDataModule):
         epoch = self._trainer_epoch()
         if epoch is not None:
             self.train.set_epoch(epoch)
-        return self._loader(self.train, train=True)
+        return self._loader(self.train, epochs=True)
 
     @_OptionalValidation
     def val_dataloader(self) -> DataLoader | list:

@@ -1179,7 +1179,7 @@ def test_a_dataset_pickled_without_the_shared_state_still_loads(clips, config):
     unpickles with its epoch and counts its items."""
     data = VideoDataset([clips[0].video], [clips[0].landmarks], config)
     state = data.__getstate__()
-    del state["_shared"], state["_claims"], state["_epoch_sets"]  # (nor the claims, nor the epoch's settings)
+    del state["_shared"], state["_claims"]  # (nor the claims of the once-per-dataset warnings)
     state["epoch"] = 3
     old = VideoDataset.__new__(VideoDataset)
     old.__setstate__(state)
@@ -1326,8 +1326,7 @@ def test_a_dataset_without_a_detector_shares_no_detection_store(clips, config):
         data = VideoDataset([clips[0].video] * n, landmarks, config)
         shared = sum(t.untyped_storage().nbytes() for t in vars(data).values()
                      if isinstance(t, torch.Tensor) and t.is_shared())  # fmt: skip
-        # (without: 8 bytes a video and three words, the epoch, the distributed warning's flag, the epoch's settings)
-        assert (shared > 1000 * n) if detector else (shared <= 8 * (n + 3))
+        assert (shared > 1000 * n) if detector else (shared <= 8 * (n + 2))
 
 
 def test_keep_going_skips_a_video_that_cannot_be_read_or_tracked(clips, config, tmp_path):

@@ -124,11 +124,7 @@ def test_datamodule_picks_the_clip_collate_and_checks_input(clips, config):
 def test_datamodule_shuffles_each_epoch_anew_with_the_trainers_defaults(clips, config):
     """Lightning builds the training loader once and calls ``set_epoch`` on samplers alone (an iterable dataset's
     loader has none): with the trainer's defaults every epoch repeated epoch 0's shuffled order. Each epoch now
-    yields the order of ``set_epoch(epoch)``, as with ``reload_dataloaders_every_n_epochs=1``. A shuffled validation
-    set (the same config) is set each validation's epoch too: the sanity check then each validation iterated it with
-    no set_epoch, and it warned to call it (VideoDataset's RuntimeWarning), which the module's user cannot."""
-    import warnings
-
+    yields the order of ``set_epoch(epoch)``, as with ``reload_dataloaders_every_n_epochs=1``."""
     from training_hooks.lightning import TrackedFaceDataModule
 
     data = VideoDataset([c.video for c in clips[:2]], [c.landmarks for c in clips[:2]], replace(config, shuffle_buffer=8))
@@ -141,12 +137,9 @@ def test_datamodule_shuffles_each_epoch_anew_with_the_trainers_defaults(clips, c
     module = Recorder()
     trainer = pl.Trainer(
         max_epochs=3, logger=False, enable_checkpointing=False, enable_progress_bar=False, enable_model_summary=False,
-        accelerator="cpu", num_sanity_val_steps=1,
+        accelerator="cpu", num_sanity_val_steps=0,
     )  # fmt: skip
-    val = VideoDataset(data.videos, data.landmarks, data.config)  # (another object: the cache has its items)
-    with warnings.catch_warnings():
-        warnings.simplefilter("error", RuntimeWarning)
-        trainer.fit(module, datamodule=TrackedFaceDataModule(data, val, batch_size=4, num_workers=0))
+    trainer.fit(module, datamodule=TrackedFaceDataModule(data, batch_size=4, num_workers=0))
     assert [module.seen[e] for e in range(3)] == expected
 
 
@@ -199,12 +192,7 @@ def test_datamodule_passes_the_loader_settings_through(clips, config):
 def test_datamodule_persistent_workers_shuffle_each_epoch_anew(clips, config):
     """Two persistent workers (the default with workers) over three epochs of a trainer: each epoch's items are the
     epoch's ``set_epoch`` order of two workers (the workers, kept, see the epoch through the dataset's shared
-    memory), and the same whatever torch's random state (the shuffling is seeded by ``DatasetConfig.seed``). A
-    shuffled validation set's persistent workers see each validation's set_epoch too: the sanity check then the first
-    validation, both of epoch 0, warned of a forgotten set_epoch (a worker had no way to see a set_epoch to the epoch
-    it had)."""
-    import warnings
-
+    memory), and the same whatever torch's random state (the shuffling is seeded by ``DatasetConfig.seed``)."""
     from torch.utils.data import DataLoader
 
     from training_hooks.lightning import TrackedFaceDataModule
@@ -222,15 +210,12 @@ def test_datamodule_persistent_workers_shuffle_each_epoch_anew(clips, config):
     torch.manual_seed(1234)
     module = Recorder()
     data.set_epoch(0)
-    val = VideoDataset(data.videos, data.landmarks, shuffled)  # (another object: the cache has its items)
-    datamodule = TrackedFaceDataModule(data, val, batch_size=4, num_workers=2)
+    datamodule = TrackedFaceDataModule(data, batch_size=4, num_workers=2)
     trainer = pl.Trainer(
         max_epochs=3, logger=False, enable_checkpointing=False, enable_progress_bar=False, enable_model_summary=False,
-        accelerator="cpu", num_sanity_val_steps=1,
+        accelerator="cpu", num_sanity_val_steps=0,
     )  # fmt: skip
-    with warnings.catch_warnings():
-        warnings.simplefilter("error", RuntimeWarning)  # (the workers, forked, inherit the filter)
-        trainer.fit(module, datamodule=datamodule)
+    trainer.fit(module, datamodule=datamodule)
     assert datamodule.persistent_workers
     assert [module.seen[e] for e in range(3)] == expected
 
