@@ -1118,9 +1118,6 @@ class VideoDataset(IterableDataset):
     @epoch.setter
     def epoch(self, epoch: int) -> None:
         self._shared[_EPOCH] = check_int(epoch, "epoch", 0)
-        # (an epoch set: an iteration before it, a peek next(iter(data)) then set_epoch(0), is no forgotten set_epoch;
-        # it warned as one, _warn_same_epoch)
-        self.__dict__.pop("_iterated", None)
 
     def set_epoch(self, epoch: int) -> None:
         """Set the epoch that seeds the shuffling (call before each epoch's ``DataLoader`` iteration). The
@@ -1861,12 +1858,9 @@ class VideoDataset(IterableDataset):
 
     def _warn_same_epoch(self) -> None:
         """Warn (a ``RuntimeWarning``, once per dataset) where this process iterates this dataset object a second
-        time in the same epoch with no epoch set between (:meth:`set_epoch`, which forgets the record in this
-        process): a shuffled epoch loop without :meth:`set_epoch` repeated the first epoch's order every epoch,
-        silently. Seen where it is cheap and sure, with no shared state: the same object in the same process
-        (``num_workers=0``, a persistent worker); a worker started afresh each epoch sees one iteration. A
-        persistent worker is not told of a :meth:`set_epoch` to the epoch it had: an iteration cut short (a peek,
-        ``next(iter(loader))``) then the same epoch set again warns there."""
+        time in the same epoch: a shuffled epoch loop without :meth:`set_epoch` repeated the first epoch's order
+        every epoch, silently. Seen where it is cheap and sure, with no shared state: the same object in the same
+        process (``num_workers=0``, a persistent worker); a worker started afresh each epoch sees one iteration."""
         seen = (os.getpid(), self.epoch)  # (a forked worker inherits the record of its parent: another pid)
         last, self._iterated = getattr(self, "_iterated", None), seen
         if last == seen and self._claim("same-epoch"):
