@@ -1159,7 +1159,6 @@ class VideoDataset(IterableDataset):
         # torch.distributed group of its own: the rank's (rank, world size) travel with the dataset.
         state = self.__dict__.copy()
         state.pop("_progress", None)  # (this process's own)
-        state.pop("_iterated", None)  # (this process's own: _warn_same_epoch)
         group = _process_group()
         if group is not None:
             state["_sender_group"] = group
@@ -1849,27 +1848,10 @@ class VideoDataset(IterableDataset):
         )
 
     def __iter__(self) -> Iterator[dict[str, Tensor]]:
-        if self.config.shuffle_buffer > 0:
-            self._warn_same_epoch()
         items = self._epoch_items()
         if self.config.progress_after is not None and self._speaks():
             items = self._then_first(items)
         return items
-
-    def _warn_same_epoch(self) -> None:
-        """Warn (a ``RuntimeWarning``, once per dataset) where this process iterates this dataset object a second
-        time in the same epoch: a shuffled epoch loop without :meth:`set_epoch` repeated the first epoch's order
-        every epoch, silently. Seen where it is cheap and sure, with no shared state: the same object in the same
-        process (``num_workers=0``, a persistent worker); a worker started afresh each epoch sees one iteration."""
-        seen = (os.getpid(), self.epoch)  # (a forked worker inherits the record of its parent: another pid)
-        last, self._iterated = getattr(self, "_iterated", None), seen
-        if last == seen and self._claim("same-epoch"):
-            warnings.warn(
-                f"{type(self).__name__} iterated again in epoch {seen[1]}: with DatasetConfig.shuffle_buffer > 0 "
-                "it repeats the same order; call data.set_epoch(epoch) before each epoch's iteration",
-                RuntimeWarning,
-                stacklevel=3,
-            )
 
     def _epoch_items(self) -> Iterator[dict[str, Tensor]]:
         """This process's items of the epoch (:meth:`__iter__`)."""
