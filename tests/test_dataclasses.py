@@ -166,6 +166,11 @@ def test_int_settings_refuse_other_types_as_type_errors_and_take_numpy_integers(
                     assert type(got) is int and got == value, (cls.__name__, name, zero_d)
             else:
                 assert type(got) is tuple and all(type(v) is int for v in got) and got == tuple(value), (cls.__name__, name)
+                for one_d in (torch.tensor(value), np.array(value)):  # (as a tuple of reals takes one; refused before)
+                    got = getattr(cls(**{**base, name: one_d}), name)
+                    assert type(got) is tuple and all(type(v) is int for v in got) and got == tuple(value), name
+                with pytest.raises(TypeError, match=rf"\b{name}\[0\] must be an int"):
+                    cls(**{**base, name: torch.tensor(value, dtype=torch.float64)})
             checked += 1
     assert checked >= 35
 

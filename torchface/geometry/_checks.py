@@ -273,13 +273,16 @@ def _home(kind: type) -> str:
 
 
 def check_ints(values: object, name: str, low: int | None = None) -> tuple[int, ...]:
-    """``values`` (a tuple or list) as a tuple of Python ints, each checked as :func:`check_int` does (``name[i]`` in
-    the messages).
+    """``values`` (a tuple or list, or a 1-D numpy array or tensor, as :func:`check_reals` takes them) as a tuple of
+    Python ints, each checked as :func:`check_int` does (``name[i]`` in the messages; a float array's elements are
+    not ints).
 
     Raises:
         TypeError: ``values`` is not a tuple or list, or an element is not an integer.
         ValueError: an element is below ``low``.
     """
+    if isinstance(values, (np.ndarray, torch.Tensor)) and values.ndim == 1:
+        values = list(values)  # (its 0-d elements: an integer one is its int, a float one refused)
     if not isinstance(values, (tuple, list)):
         raise TypeError(f"{name} must be a tuple of ints, got {type(values).__name__} {values!r}")
     return tuple(check_int(v, f"{name}[{i}]", low) for i, v in enumerate(values))
