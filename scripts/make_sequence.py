@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import os
 import sys
 import time
 from pathlib import Path
@@ -27,6 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))  # _argtypes beside thi
 from _argtypes import folder_problem  # noqa: E402
 from _argtypes import run_command  # noqa: E402
 
+from torchface.cli import is_terminal
 from torchface.synth.scenarios import (
     ALL_SCENARIOS,
     LONG_RUN_MIN_FRAMES,
@@ -73,7 +73,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--out {args.out}: {problem}")
     # a terminal gets one line redrawn in place; a pipe or a log whole lines, one each 10 s and the last (the \r
     # redraws ran together there: "... (4.4 fps)expressions: 12/12 ..."), as torchface track's progress does
-    tty = sys.stdout.isatty() and os.environ.get("TERM") != "dumb"
+    tty = is_terminal(sys.stdout)  # (the CLI's rule: a stream without isatty, a notebook's, is not one)
     for name in names:
         w, h, t = scenario_size(name, args.size)
         w = args.width if args.width is not None else w

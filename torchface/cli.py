@@ -86,6 +86,14 @@ def _sigterm_as_interrupt() -> Iterator[None]:
         signal.signal(signal.SIGTERM, previous)
 
 
+def is_terminal(stream: object) -> bool:
+    """Whether ``stream`` is a terminal that can redraw a line in place: its ``isatty()`` says so (a stream without
+    ``isatty``, some notebook or wrapper streams, is not one) and ``TERM`` is not ``dumb`` (Emacs' shell and
+    compilation buffers: no cursor movement). Progress goes to such a stream as a redrawn line, to others as whole
+    lines (``torchface track``, ``scripts/make_sequence.py``)."""
+    return bool(getattr(stream, "isatty", lambda: False)()) and os.environ.get("TERM") != "dumb"
+
+
 class ProgressDisplay:
     """One progress bar per video (frames, fps, confidence) on a terminal; occasional lines otherwise (and where
     ``TERM=dumb``, a terminal without cursor movement).
@@ -106,8 +114,7 @@ class ProgressDisplay:
         self.stream = stream
         self.width = width
         self.redraw_s = redraw_s
-        # a terminal that cannot move the cursor (TERM=dumb: Emacs' shell and compilation buffers) gets log lines
-        self.tty = bool(getattr(stream, "isatty", lambda: False)()) and os.environ.get("TERM") != "dumb"
+        self.tty = is_terminal(stream)  # (TERM=dumb, a terminal that cannot move the cursor, gets log lines)
         self.lines: dict[int, str] = {}  # the videos being tracked (on a terminal: their bars)
         self.drawn = 0
         self.last_print: dict[int, float] = {}

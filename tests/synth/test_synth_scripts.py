@@ -13,12 +13,29 @@ from _helpers import SCRIPTS  # noqa: E402
 from _helpers import load_script as _load  # noqa: E402
 
 
-def test_make_sequence_then_overlay(tmp_path, capsys):
+class _StreamWithoutIsatty:
+    """A text stream with write and flush alone (some notebook or wrapper streams have no isatty)."""
+
+    def __init__(self) -> None:
+        self.parts: list[str] = []
+
+    def write(self, text: str) -> int:
+        self.parts.append(text)
+        return len(text)
+
+    def flush(self) -> None:
+        pass
+
+
+def test_make_sequence_then_overlay(tmp_path, capsys, monkeypatch):
     make = _load("make_sequence")
     out = tmp_path / "seq"
     args = ["--scenario", "expressions", "--width", "64", "--height", "48", "--frames", "3", "--batch", "2"]
-    assert make.main([*args, "--out", str(out)]) == 0
-    text = capsys.readouterr().out
+    stream = _StreamWithoutIsatty()  # (sys.stdout.isatty() raised AttributeError: torchface track's rule now)
+    with monkeypatch.context() as m:
+        m.setattr(sys, "stdout", stream)
+        assert make.main([*args, "--out", str(out)]) == 0
+    text = "".join(stream.parts)
     assert "3/3 frames" in text and "expressions.avi" in text
     # not a terminal: whole progress lines (the first and the last), not \r redraws run together in a log
     assert "\r" not in text and [line.split(" (")[0] for line in text.splitlines()[:2]] == [
