@@ -182,7 +182,15 @@ from torchface.extending import (
 )
 from torchface.io.errors import InputError
 from torchface.io.landmarks import NUM_LANDMARKS, check_landmarks, read_landmarks
-from torchface.io.video import CONVERT_HINT, folder_of_videos_hint, image_files, open_capture, open_frames
+from torchface.io.video import (
+    CONVERT_HINT,
+    NAN_PIXELS_HINT,
+    NAN_PIXELS_WHY,
+    folder_of_videos_hint,
+    image_files,
+    open_capture,
+    open_frames,
+)
 from torchface.model.face_model import FaceModel
 from training_hooks.cache import CacheStats, TrackCache, cache_key, content_hash
 from training_hooks.transforms import FaceTrackingConfig, NormaliseFaces, TrackedSequence, _landmarks_shape_hint
@@ -490,15 +498,25 @@ ForkingPickler.register(_Claims, _Claims._shared_reduce)
 #: ``--convert`` is ``DatasetConfig(convert=True)`` here).
 _DATASET_CONVERT_HINT: str = CONVERT_HINT.replace("pass --convert", "set DatasetConfig(convert=True)")
 
+#: What a dataset's frame file with NaN pixels is told after :data:`~torchface.io.video.NAN_PIXELS_WHY`: a dataset
+#: reads its videos from files, so :mod:`torchface.io`'s "track the frames as a tensor" is not its user's remedy.
+_DATASET_NAN_PIXELS_HINT: str = (
+    NAN_PIXELS_WHY + ": fill them in the file (np.save(path, np.nan_to_num(frames, nan=0.0))), or read the frames "
+    "yourself and give them as tensors to training_hooks.NormaliseFaces, which takes NaN pixels as missing"
+)
+
 
 @contextmanager
 def _dataset_hint() -> Iterator[None]:
     """Re-raise :mod:`torchface.io`'s refusal of a grayscale, RGBA, 16-bit or odd-sized frame with the dataset's
-    setting in place of the command line's ``--convert``."""
+    setting in place of the command line's ``--convert``, and its refusal of a frame file's NaN pixels with what a
+    dataset's user can do (:data:`_DATASET_NAN_PIXELS_HINT`)."""
     try:
         yield
     except InputError as exc:
         text = str(exc)
+        if text.endswith(f"({NAN_PIXELS_HINT})"):
+            raise InputError(text[: -len(NAN_PIXELS_HINT) - 1] + _DATASET_NAN_PIXELS_HINT + ")") from None
         if not text.endswith(CONVERT_HINT):
             raise
         raise InputError(text[: -len(CONVERT_HINT)] + _DATASET_CONVERT_HINT) from None

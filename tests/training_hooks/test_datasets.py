@@ -22,6 +22,7 @@ from torch.utils.data import DataLoader
 
 from torchface.geometry.so3 import geodesic_angle_deg
 from torchface.io import InputError
+from torchface.io.video import NAN_PIXELS_WHY
 from torchface.synth.io import read_video, read_video_uint8, write_video
 from training_hooks import (
     DatasetConfig,
@@ -706,6 +707,23 @@ def test_a_frame_to_convert_names_the_datasets_setting(clips, config, tmp_path):
             run()
         assert "DatasetConfig(convert=True)" in str(info.value) and "--convert" not in str(info.value)
     assert len(list(FrameFolderDataset([folder], lm, replace(cfg, convert=True)))) == frames.shape[0]
+    # a float clip's NaN pixels (the first frame's, a later one's): why, then what a dataset's user can do (the
+    # command line's "track the frames as a tensor" is the tracker's API, not a dataset's)
+    for f in (0, 2):
+        clip = frames.permute(0, 2, 3, 1).numpy().astype(np.float32) / 255
+        clip[f, 3, 4] = np.nan
+        np.save(tmp_path / f"nan{f}.npy", clip)
+        runs = [lambda: list(VideoDataset([tmp_path / f"nan{f}.npy"], lm, cfg))]
+        if f == 0:  # (counting a .npy clip reads its first frame alone)
+            runs.append(lambda: VideoDataset([tmp_path / f"nan{f}.npy"], lm, cfg).num_items(0))
+        for run in runs:
+            with pytest.raises(InputError, match="NaN") as info:
+                run()
+            text = str(info.value)
+            assert text.endswith(f"({NAN_PIXELS_WHY}: fill them in the file (np.save(path, np.nan_to_num(frames, "
+                                 "nan=0.0))), or read the frames yourself and give them as tensors to "
+                                 "training_hooks.NormaliseFaces, which takes NaN pixels as missing)"), text
+            assert "as a tensor" not in text and text.count(NAN_PIXELS_WHY) == 1, text
 
 
 def test_cache_dir_annotation_takes_the_documented_str(tmp_path):

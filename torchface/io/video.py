@@ -159,12 +159,15 @@ def _problem_message(where: str, problems: list[str]) -> str:
     return f"{where}: frames are {what} (torchface takes 8-bit colour frames of even width and height): {CONVERT_HINT}"
 
 
-#: What a frame file's NaN pixels are told (:func:`frame_to_tensor`): why they are refused and what to do.
-NAN_PIXELS_HINT: str = (
+#: Why a frame file's NaN pixels are refused (the start of :data:`NAN_PIXELS_HINT`; a dataset's message follows it
+#: with what a dataset's user can do).
+NAN_PIXELS_WHY: str = (
     "a frame file's pixels must be values; NaN marks a missing pixel only in the Python API's frame tensors "
-    "(FaceTracker, NormaliseFaces, NormalisedFaceLayer), which leave it out of the fit: fill them, "
-    "np.nan_to_num(frames, nan=0.0), or track the frames as a tensor"
+    "(FaceTracker, NormaliseFaces, NormalisedFaceLayer), which leave it out of the fit"
 )
+
+#: What a frame file's NaN pixels are told (:func:`frame_to_tensor`): why they are refused and what to do.
+NAN_PIXELS_HINT: str = NAN_PIXELS_WHY + ": fill them, np.nan_to_num(frames, nan=0.0), or track the frames as a tensor"
 
 
 def _float_range_problem(array: np.ndarray) -> str:
