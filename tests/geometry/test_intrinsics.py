@@ -201,6 +201,9 @@ def test_a_principal_point_outside_the_frame_alone_is_a_crop_not_a_mix_up() -> N
     assert mixed_up_intrinsics(Intrinsics(640, 480, 600.0, 600.0, -0.5, -100.0)) is None
     assert "are implausible" in str(mixed_up_intrinsics(Intrinsics(640, 480, 600.0, 600.0, -0.5, 1500.0)))
     assert "are implausible" in str(mixed_up_intrinsics(Intrinsics(640, 480, 1.0, 1.0, -0.5, -0.5)))
+    # the bottom-right quadrant of a calibrated 1280x960 camera (principal point (645.2, 472.8), a wide lens): its
+    # principal point (5.2, -7.2) is a centred camera's near (0, 0) too, so that is not warned of (the docstring)
+    assert mixed_up_intrinsics(Intrinsics(640, 480, 640.0, 640.0, 645.2 - 640, 472.8 - 480)) is None
     # a subnormal focal length, scaled to that larger frame's, is 0 (divided by: a ZeroDivisionError)
     assert "are implausible" in str(mixed_up_intrinsics(Intrinsics(1, 1, 5e-324, 1.0, 0.5, 0.5)))
 

@@ -276,6 +276,16 @@ def mixed_up_intrinsics(intrinsics: Intrinsics) -> str | None:
     A principal point outside the frame that none of these explains is a crop's camera (its larger frame's principal
     point), plausible unless the frame's centre lies more than :data:`PLAUSIBLE_OFF_AXIS` focal lengths from it.
 
+    A camera in centred coordinates whose principal point is near ``(0, 0)`` but not on it (a calibration's offset
+    from the centre, e.g. ``(10, -5)`` for a 640x480 frame) is not told: its numbers are those of a genuine crop, the
+    crop whose top-left corner lies near the larger frame's principal point. The bottom-right quadrant of a frame
+    twice as large is such a crop: ``(-0.5, -0.5)`` with the larger frame's default camera, and with a calibrated one
+    its principal point's offset from the centre, ``(5.2, -7.2)`` for a 1280x960 calibration at ``(645.2, 472.8)``.
+    The focal length does not tell them apart either (that quadrant's ``fx`` is the larger frame's, ``fx / W`` 1 for a
+    wide lens, as a centred 640x480 camera's can be), so any region around ``(0, 0)`` warned of would warn such crops
+    at every start; ``(0, 0)`` exactly is told (a crop starting exactly on the larger frame's principal point is no
+    quadrant of a default camera, whose centre is not a pixel corner).
+
     Example:
         >>> mixed_up_intrinsics(Intrinsics(640, 480, 600.0, 319.5, 600.0, 239.5))  # doctest: +ELLIPSIS
         "...OpenCV's matrix order (fx, cx, fy, cy)...: Intrinsics(640, 480, fx=600, fy=600, cx=319.5, cy=239.5)..."
