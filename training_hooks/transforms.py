@@ -40,7 +40,7 @@ from torch import Tensor
 from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS
 from torchface.extending import check_bool, check_choice, check_int, check_no_tilde, check_number
 from torchface.geometry.camera import Intrinsics
-from torchface.io.landmarks import missing_points_problem
+from torchface.io.landmarks import missing_points_problem, planar_layout_problem
 from torchface.model.candide import load_candide3
 from torchface.model.face_model import FaceModel
 from torchface.model.model_file import load_face_model
@@ -434,7 +434,8 @@ def _landmarks_tensor(landmarks: object, count: int = 68) -> Tensor:
     """``(count, 2)`` first-frame landmarks (the model's ``K``) -> float64 tensor, validated.
 
     ``(1, count, 2)`` (a batch of one) and ``(2 * count,)`` (``x0, y0, x1, ...``) are taken as ``(count, 2)``, as a
-    dataset's entry and a landmarks file (:func:`torchface.io.check_landmarks`) are.
+    dataset's entry and a landmarks file (:func:`torchface.io.check_landmarks`) are; a flat vector that is evidently
+    all x then all y is refused (:func:`torchface.io.landmarks.planar_layout_problem`).
 
     A missing point is a NaN row, which the landmark fit gives weight 0 (as :class:`~torchface.tracker.FaceTracker`
     takes it); the rules of a landmarks file (:func:`torchface.io.landmarks.missing_points_problem`): at least
@@ -446,6 +447,10 @@ def _landmarks_tensor(landmarks: object, count: int = 68) -> Tensor:
     if not isinstance(landmarks, Tensor):
         got = type(landmarks).__name__
         raise TypeError(f"landmarks must be a ({count}, 2) array or tensor, or a TrackerState, got {got}")
+    if tuple(landmarks.shape) == (2 * count,):  # (x0, y0, x1, ...: all x then all y refused, as check_landmarks does)
+        problem = planar_layout_problem(landmarks.detach().to(device="cpu", dtype=torch.float64).numpy(), count)
+        if problem is not None:
+            raise ValueError(f"landmarks: {problem}")
     if tuple(landmarks.shape) in ((1, count, 2), (2 * count,)):  # the layouts a dataset's entry, a landmarks file
         landmarks = landmarks.reshape(count, 2)  # and torchface.io.check_landmarks take: one rule (this refused them)
     if tuple(landmarks.shape) != (count, 2):

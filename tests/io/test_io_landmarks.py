@@ -99,6 +99,31 @@ def test_csv_single_row_and_npy_layouts(tmp_path):
         np.testing.assert_allclose(read_landmarks(tmp_path / "lm.npy", 100, 100), pts)
 
 
+def test_a_flat_vector_all_x_then_all_y_is_refused(tmp_path):
+    """A flat vector is read x0, y0, x1, y1, ...; one written all x then all y (``points.T.reshape(-1)``) passed the
+    shape check and tracked junk. It is refused where its planar reading is a face and its interleaved one is not
+    (planar_layout_problem's docstring: no genuine vector refused in 14040 faces of every pose)."""
+    from torchface.io.landmarks import _IBUG_FRONTAL
+
+    turn = np.deg2rad(25.0)
+    rotation = np.array([[np.cos(turn), -np.sin(turn)], [np.sin(turn), np.cos(turn)]])
+    face = _IBUG_FRONTAL * [-1.0, 1.0] @ rotation.T * 250.0 + 50.0  # (mirrored, turned, centred on x = y)
+    face += np.random.default_rng(3).normal(0.0, 1.0, face.shape)
+    said = r"read as all x then all y they do: pass points.reshape\(2, 68\).T"
+    planar = face.T.reshape(-1)
+    np.save(tmp_path / "planar.npy", planar)
+    (tmp_path / "planar.json").write_text(str(planar.tolist()))
+    (tmp_path / "planar.csv").write_text(",".join(repr(v) for v in planar.tolist()) + "\n")
+    for name in ("planar.npy", "planar.json", "planar.csv"):
+        with pytest.raises(InputError, match=said):
+            read_landmarks(tmp_path / name, 100, 100)
+    with pytest.raises(InputError, match="lm: the 136 values read as x0, y0, x1, y1"):
+        check_landmarks(planar, 100, 100, "lm")
+    np.testing.assert_allclose(check_landmarks(face.reshape(-1), 100, 100, "lm"), face)  # the same face, interleaved
+    np.save(tmp_path / "lm.npy", face.reshape(-1))
+    np.testing.assert_allclose(read_landmarks(tmp_path / "lm.npy", 100, 100), face)
+
+
 @pytest.mark.parametrize(
     "edit, message",
     [

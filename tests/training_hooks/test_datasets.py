@@ -897,6 +897,8 @@ def test_transform_rejects_bad_input(clips):
     # a batch of one (1, 68, 2) and a flat (136,): taken as a dataset's entry and an NPY landmarks file are (refused)
     for layout in (lm[None], torch.from_numpy(lm.reshape(-1))):
         assert torch.equal(normalise.track(frames[:1], layout)[0].faces, first.faces)
+    with pytest.raises(ValueError, match=r"landmarks: the 136 values .* all x then all y they do"):  # (planar)
+        normalise.track(frames[:1], torch.from_numpy(np.ascontiguousarray(lm.T).reshape(-1)))
     with pytest.raises(ValueError, match=r"frame 1: .*divide by 255"):  # also when a clip continues a state
         normalise.track(torch.cat([frames[1:2], frames[2:3] * 255.0]), state)
 
