@@ -144,6 +144,8 @@ def test_readme_defaults_are_the_code_defaults():
             FaceTrackingConfig().pyramid == "auto" and FaceTracker.__init__.__defaults__[-1] == "auto",
         # (it said "under 255": faces of 254.56-255 pixels, 180·√2 and up, got a level)
         "faces under 254.5\npixels keep the config either way": [_levels_for_face(f) for f in (254.5, 254.6)] == [3, 4],
+        # (it said "faces of 2036 pixels and more get 6": where a seventh level would come without the cap)
+        "from three, faces of 1019 pixels and more get 6": [_levels_for_face(f) for f in (1018, 1019, 4000)] == [5, 6, 6],
     }
     words = " ".join(EVERYTHING.split())  # (compared with the line breaks and indents as spaces: a reflow is no change)
     for text, holds in claims.items():
