@@ -90,8 +90,13 @@ def is_terminal(stream: object) -> bool:
     """Whether ``stream`` is a terminal that can redraw a line in place: its ``isatty()`` says so (a stream without
     ``isatty``, some notebook or wrapper streams, is not one) and ``TERM`` is not ``dumb`` (Emacs' shell and
     compilation buffers: no cursor movement). Progress goes to such a stream as a redrawn line, to others as whole
-    lines (``torchface track``, ``scripts/make_sequence.py``)."""
-    return bool(getattr(stream, "isatty", lambda: False)()) and os.environ.get("TERM") != "dumb"
+    lines (``torchface track``, ``scripts/make_sequence.py``). One whose ``isatty()`` raises (a closed or detached
+    stream's ``ValueError``, ``io.UnsupportedOperation``) is not one either: the progress rule never stops a run."""
+    try:
+        tty = bool(getattr(stream, "isatty", lambda: False)())
+    except (ValueError, OSError):  # (io.UnsupportedOperation is both)
+        return False
+    return tty and os.environ.get("TERM") != "dumb"
 
 
 class ProgressDisplay:

@@ -1902,6 +1902,14 @@ def test_progress_display_terminal_and_log(monkeypatch):
     assert "\x1b[2F" in text and "1 frame " in text and "2/10" in text  # redraws both bars in place
     assert "1 frames" not in text  # (one frame, in the singular)
 
+    from torchface.cli import is_terminal
+
+    closed = io.StringIO()
+    closed.close()  # (its isatty raises ValueError: not a terminal, rather than the run stopping)
+    assert is_terminal(tty) and not is_terminal(closed) and not is_terminal(object())
+    monkeypatch.setenv("TERM", "dumb")
+    assert not is_terminal(tty)
+
 
 def test_progress_display_terminal_redraws_once_per_interval_not_per_report(monkeypatch):
     """The job reports every stream after every step; a terminal redraw writes every bar, so redrawing at each

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+import warnings
 
 import numpy as np
 import pytest
@@ -103,7 +104,7 @@ def test_a_flat_vector_all_x_then_all_y_is_refused(tmp_path):
     """A flat vector is read x0, y0, x1, y1, ...; one written all x then all y (``points.T.reshape(-1)``) passed the
     shape check and tracked junk. It is refused where its planar reading is a face and its interleaved one is not
     (planar_layout_problem's docstring: no genuine vector refused in 14040 faces of every pose)."""
-    from torchface.io.landmarks import _IBUG_FRONTAL
+    from torchface.io.landmarks import _IBUG_FRONTAL, planar_layout_problem
 
     turn = np.deg2rad(25.0)
     rotation = np.array([[np.cos(turn), -np.sin(turn)], [np.sin(turn), np.cos(turn)]])
@@ -117,6 +118,11 @@ def test_a_flat_vector_all_x_then_all_y_is_refused(tmp_path):
     for name in ("planar.npy", "planar.json", "planar.csv"):
         with pytest.raises(InputError, match=said):
             read_landmarks(tmp_path / name, 100, 100)
+    for scale in (1.0, 1e300, 1e-300):  # (coordinates near float64's range judged alike, without an overflow warning)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            assert planar_layout_problem(planar * scale) is not None
+            assert planar_layout_problem(face.reshape(-1) * scale) is None
     with pytest.raises(InputError, match="lm: the 136 values read as x0, y0, x1, y1"):
         check_landmarks(planar, 100, 100, "lm")
     np.testing.assert_allclose(check_landmarks(face.reshape(-1), 100, 100, "lm"), face)  # the same face, interleaved

@@ -599,8 +599,13 @@ def _face_distance(points: np.ndarray) -> float:
     """The Procrustes distance of ``(68, 2)`` finite points from :data:`_IBUG_FRONTAL` (translation, scale, rotation
     and reflection removed): ``sqrt(1 - s**2)``, ``s`` the sum of the singular values of the normalised points'
     cross-covariance with it, 0 for the same shape up to a similarity, 1 for one unrelated to it (or all points at
-    one place)."""
-    q = points - points.mean(0)
+    one place). The points are first divided by their largest magnitude (the distance does not depend on it), so
+    that coordinates near float64's range neither overflow nor underflow (judged, without a RuntimeWarning)."""
+    top = float(np.abs(points).max())
+    if not top > 0 or not math.isfinite(top):
+        return 1.0
+    q = points / top
+    q = q - q.mean(0)
     norm = float(np.linalg.norm(q))
     if not norm > 0 or not math.isfinite(norm):
         return 1.0
