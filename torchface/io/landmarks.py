@@ -628,9 +628,8 @@ def planar_layout_problem(values: np.ndarray, count: int = NUM_LANDMARKS) -> str
     a genuine (interleaved) vector lay at least 0.90 from the frontal layout (0.84 over 163178 more: 21 of the ICT
     model's identities with expressions and a scanned face, yaw to 100, pitch to 85, points clamped to a line,
     collapsed onto one, rounded, float32; a search over pose, shear and perspective found none nearer than 0.81),
-    so none was refused; of the planar
-    vectors 98 % of the sequences' faces and 58 % of that whole range were refused (the faces far from frontal
-    fit neither reading: let through, as before).
+    so none was refused; of the planar vectors 98 % of the sequences' faces and 58 % of that whole range were
+    refused (the faces far from frontal fit neither reading: let through, as before).
     """
     flat = np.asarray(values, dtype=np.float64).reshape(-1)
     if count != NUM_LANDMARKS or flat.size != 2 * count or not np.isfinite(flat).all():
