@@ -31,6 +31,21 @@ ASSETS = Path(os.environ.get("TORCHFACE_ASSETS") or Path(__file__).resolve().par
 ICT_NPZ = ASSETS / "ict_facekit" / "ict_face_model_light.npz"
 
 
+class WriteOnlyStream:
+    """A text stream with ``write`` and ``flush`` alone (no ``isatty``, as some notebook or wrapper streams), keeping
+    each write in ``parts``."""
+
+    def __init__(self) -> None:
+        self.parts: list[str] = []
+
+    def write(self, text: str) -> int:
+        self.parts.append(text)
+        return len(text)
+
+    def flush(self) -> None:
+        pass
+
+
 #: The command-line scripts (scripts/ of the checkout).
 SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
 

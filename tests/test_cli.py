@@ -14,7 +14,7 @@ from torchface.synth.io import read_video
 from torchface.synth.sequence import load_ground_truth
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _helpers import without_home  # noqa: E402
+from _helpers import WriteOnlyStream, without_home  # noqa: E402
 
 
 def test_render_demo_writes_a_sequence(tmp_path, capsys):
@@ -308,34 +308,23 @@ def test_the_summary_is_written_in_one_piece():
     from torchface.cli import _print_summary
     from torchface.job import VideoSummary
 
-    class Writes:
-        def __init__(self) -> None:
-            self.calls: list[str] = []
-
-        def write(self, text: str) -> int:
-            self.calls.append(text)
-            return len(text)
-
-        def flush(self) -> None:
-            pass
-
     done = [VideoSummary(n, Path(f"{n}.mp4"), (Path(f"o/{n}.csv"),), 30, 1, 0.9, 12.0, False, 40) for n in "abc"]
-    out = Writes()
+    out = WriteOnlyStream()
     _print_summary(done, out, ("d",), ("stopped at a frame that could not be read",))  # type: ignore[arg-type]
-    assert len(out.calls) == 1, out.calls
-    lines = out.calls[0].splitlines()
+    assert len(out.parts) == 1, out.parts
+    lines = out.parts[0].splitlines()
     assert lines[:3] == ["", "summary", "  a: 30 frames, 12.0 fps, mean confidence 0.90, 1 lost frame"]
     assert lines[3] == "    warning: a.mp4 declares 40 frames, 30 could be decoded (truncated or damaged?)"
     assert lines[-2] == ("  d: stopped at a frame that could not be read, not completed (its rows so far are kept in "
                          "d.csv.partial)")
-    assert lines[-1].startswith("outputs in o/ (per video: .csv") and out.calls[0].endswith("\n")
+    assert lines[-1].startswith("outputs in o/ (per video: .csv") and out.parts[0].endswith("\n")
     # one of a thing is said in the singular ("1 frames" was printed), none and many in the plural
     one = [VideoSummary("e", Path("e.mp4"), (Path("o/e.csv"),), 1, 0, 0.9, 12.0, False, 1),
            VideoSummary("f", Path("f.mp4"), (Path("o/f.csv"),), 1, 1, 0.9, 12.0, skipped=True),
            VideoSummary("g", Path("g.mp4"), (Path("o/g.csv.partial"),), 1, 0, 0.9, 0.0, stopped="a bad frame")]
-    out = Writes()
+    out = WriteOnlyStream()
     _print_summary(one, out)  # type: ignore[arg-type]
-    lines = out.calls[0].splitlines()
+    lines = out.parts[0].splitlines()
     assert lines[2:5] == ["  e: 1 frame, 12.0 fps, mean confidence 0.90, 0 lost frames",
                           "    warning: e.mp4 declares 1 frame, 1 could be decoded (truncated or damaged?)",
                           "  f: already complete (1 frame), skipped"], lines  # fmt: skip

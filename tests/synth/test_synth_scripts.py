@@ -9,29 +9,15 @@ import cv2
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests/_helpers.py
-from _helpers import SCRIPTS  # noqa: E402
+from _helpers import SCRIPTS, WriteOnlyStream  # noqa: E402
 from _helpers import load_script as _load  # noqa: E402
-
-
-class _StreamWithoutIsatty:
-    """A text stream with write and flush alone (some notebook or wrapper streams have no isatty)."""
-
-    def __init__(self) -> None:
-        self.parts: list[str] = []
-
-    def write(self, text: str) -> int:
-        self.parts.append(text)
-        return len(text)
-
-    def flush(self) -> None:
-        pass
 
 
 def test_make_sequence_then_overlay(tmp_path, capsys, monkeypatch):
     make = _load("make_sequence")
     out = tmp_path / "seq"
     args = ["--scenario", "expressions", "--width", "64", "--height", "48", "--frames", "3", "--batch", "2"]
-    stream = _StreamWithoutIsatty()  # (sys.stdout.isatty() raised AttributeError: torchface track's rule now)
+    stream = WriteOnlyStream()  # (sys.stdout.isatty() raised AttributeError: torchface track's rule now)
     with monkeypatch.context() as m:
         m.setattr(sys, "stdout", stream)
         assert make.main([*args, "--out", str(out)]) == 0

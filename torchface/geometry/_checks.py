@@ -135,15 +135,13 @@ def _refuse_grad(value: object, name: str, what: str = "a real number") -> None:
 
 
 def _check_real(value: object, name: str, extra: str) -> float:
+    number = value
     if isinstance(value, (torch.Tensor, np.ndarray)) and value.ndim == 0:  # (as iterating a tensor gives)
         _refuse_grad(value, name)
-        number = value.item()  # (a bool or complex one: a bool or complex, refused)
-        if isinstance(number, bool) or not isinstance(number, numbers.Real):
-            raise TypeError(f"{name} must be a real number{extra}, got {type(value).__name__} {value!r}")
-        return cast(float, number) if type(number) in (int, float) else float(number)
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
+        number = value.item()  # (a bool or complex one: a bool or complex, refused below)
+    if isinstance(number, (bool, np.bool_)) or not isinstance(number, numbers.Real):
         raise TypeError(f"{name} must be a real number{extra}, got {type(value).__name__} {value!r}")
-    return cast(float, value) if type(value) in (int, float) else float(value)
+    return cast(float, number) if type(number) in (int, float) else float(number)
 
 
 @overload

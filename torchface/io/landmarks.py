@@ -510,9 +510,10 @@ def _parse_csv_as(p: Path, text: str, comma: bool, count: int = NUM_LANDMARKS) -
     if kept is not None and {len(r) for r in _number_rows(kept, 2)} == {2}:  # ``,x,y``: x, y (as before the
         rows = _number_rows(kept, 2)  # missing points, which dropped every empty cell), a missing point ``,,``
     if len(rows) == 1:
-        if (planar := planar_layout_problem(np.asarray(rows[0], dtype=np.float64), count)) is not None:
+        values = np.asarray(rows[0], dtype=np.float64)
+        if (planar := planar_layout_problem(values, count)) is not None:
             raise InputError(f"{p}: {planar} (or name the columns: x_0, ..., x_67, y_0, ..., y_67)")
-        return np.asarray(rows[0], dtype=np.float64).reshape(-1, 2) if len(rows[0]) % 2 == 0 else np.asarray(rows[0])
+        return values.reshape(-1, 2) if len(rows[0]) % 2 == 0 else np.asarray(rows[0])
     widths = {len(r) for r in rows}
     if len(widths) > 1 or (rows and len(rows[0]) != 2):
         raise InputError(f"{p}: expected rows of 'x, y' (or, one row per point, a header naming ibug_index, x and y "
