@@ -51,6 +51,11 @@ def _check_coeffs(coeffs: Tensor | None, count: int, what: str, units: Tensor) -
         )
 
 
+#: Elements per row of :func:`_rowwise_product`'s padded product: 16 float32 (64 bytes), the CPU allocator's
+#: alignment, so that each output row is aligned as a batch of one's is.
+_ROW_ALIGN = 16
+
+
 def _rowwise_product(coeffs: Tensor, basis: Tensor) -> Tensor:
     """``(B, K) @ (K, D)`` -> ``(B, D)``, each row computed as a ``(1, K) @ (K, D)`` product of its own.
 
@@ -58,13 +63,26 @@ def _rowwise_product(coeffs: Tensor, basis: Tensor) -> Tensor:
     blocks a matrix product by its number of rows, so a row's rounding depended on the batch size (float32: an ICT
     Face Model stream's vertices 1.5e-5 mm apart alone and among 5, which a LOST track on the background grew), and a
     stream in a batch was not the same stream alone to the bit. Each row here is the product a batch of one computes
-    (equal to the bit to ``coeffs @ basis`` at ``B = 1``, measured on this project's CPUs for CANDIDE-3 and the ICT
-    Face Model); at 128 streams it costs about as much as the matrix product on CANDIDE-3 (0.04 ms) and 4 times as
-    much on the ICT Face Model's 9846 vertices. The coefficients are made contiguous first: column-major ones (an
-    ``(A, B)`` tensor transposed) went to ``bmm`` as they were, which computed most rows otherwise than alone.
+    (equal to the bit to ``coeffs @ basis`` at ``B = 1``); at 128 streams it costs about as much as the matrix
+    product on CANDIDE-3 (0.04 ms) and 4 times as much on the ICT Face Model's 9846 vertices. The coefficients are
+    made contiguous first: column-major ones (an ``(A, B)`` tensor transposed) went to ``bmm`` as they were, which
+    computed most rows otherwise than alone.
+
+    The basis is padded with zero columns to a multiple of :data:`_ROW_ALIGN` elements, so that every row of the
+    product starts as a batch of one's does, on a 64-byte boundary (the allocator's), and the padding is sliced off
+    (for ``B > 1``; the copy costs about 6 microseconds on CANDIDE-3).
+    A kernel may take another path for an output row that is not so aligned: on an AMD EPYC (AVX-512, MKL 2024.2)
+    the rows at an odd multiple of 8 bytes were computed otherwise than alone (CANDIDE-3's 339 columns: 119 of 195
+    rows for B = 1 to 8, 31 and 128; the ICT Face Model's: 82), while the Intel CPUs of earlier sessions computed
+    them alike.
     """
     coeffs = coeffs.contiguous()  # (no copy of contiguous coefficients: the same product, to the bit)
-    return torch.bmm(coeffs.unsqueeze(1), basis.unsqueeze(0).expand(coeffs.shape[0], -1, -1)).squeeze(1)
+    num_d = basis.shape[1]
+    pad = -num_d % _ROW_ALIGN if coeffs.shape[0] > 1 else 0  # (one row is aligned as it is: no copy of the basis)
+    if pad:
+        basis = torch.nn.functional.pad(basis, (0, pad))
+    out = torch.bmm(coeffs.unsqueeze(1), basis.unsqueeze(0).expand(coeffs.shape[0], -1, -1)).squeeze(1)
+    return out[:, :num_d] if pad else out
 
 
 def deform_vertices(
