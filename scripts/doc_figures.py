@@ -1,7 +1,8 @@
 #!/usr/bin/env python
 """Measure the figures README.md, docs/ and the docstrings quote from small experiments that no other script runs.
 
-Each subcommand prints the table its text quotes (one thread, a minute or less on a 2-core CPU; other-models 2):
+Each subcommand prints the table its text quotes (one thread, a minute or less of CPU; other-models and
+resume-sweep 2):
 
   face-width   TrackerConfig.min_face_width_px's docstring (and docs/python-api.md's paragraph on it): rotation
                error against the face's width on rendered CANDIDE-3 clips at 320x240, with the test off
@@ -49,6 +50,19 @@ Each subcommand prints the table its text quotes (one thread, a minute or less o
                the fastest of --runs runs. --video tracks the frames as 8-bit video; --no-expression,
                --expression-prior-precision and --shape-bound change TrackerConfig (use_expression,
                expression_prior_precision, fit.shape_bound).
+  resume-sweep docs/cli.md's "Interrupting and resuming" and torchface/job.py's module docstring: a `pose_sweep`
+               (--frames frames at --size, saved as 8-bit frames) tracked by torchface.job.track_videos (JobConfig's
+               defaults, as `torchface track`), alone and as a batch of its frames from each of --starts on, each plain,
+               with --smooth's filter and with a detector (the renderer's landmarks of the frame it is given)
+               re-detecting every --redetect-every frames (--videos, --variants: some of them). Each is tracked
+               uninterrupted, then interrupted once --stop rows are written (a Ctrl-C between steps, not the signal
+               handler's checkpoint) and resumed (--resume) from its last checkpoint (every --every rows from the online
+               start's --max-frames on) and, the checkpoint removed, from its CSV's rows: which outputs (CSV, overlay,
+               normalised face) are the uninterrupted run's byte for byte, and how far the resumed rows part from the
+               uninterrupted ones (the most over the rows and videos: translation, mm; rotation, degrees between the
+               r00..r22 matrices; confidence; the first frame that differs); and the first video's frames/s
+               (timings_s.fps, the rows replayed from the CSV left out, and counting them: frames tracked over
+               timings_s.track).
 
 Examples:
     python scripts/doc_figures.py face-width
@@ -58,6 +72,7 @@ Examples:
     python scripts/doc_figures.py hard-cuts --dx 90 --dz -120 --dyaw 0,21
     python scripts/doc_figures.py lid-fit --draws 100
     python scripts/doc_figures.py other-models --areas narrow_eyes --no-expression
+    python scripts/doc_figures.py resume-sweep
 """
 
 from __future__ import annotations
@@ -442,6 +457,138 @@ def other_models(args: argparse.Namespace) -> None:
                   f"{status.count(3):>4} {status.count(1):>6} {ms:>14} {first:>8.2f} s", flush=True)
 
 
+def _sweep_rows(folder: Path, name: str) -> tuple[tuple[str, ...], torch.Tensor]:
+    from torchface.io import read_track_csv
+
+    columns, rows = read_track_csv(folder / f"{name}.csv")
+    return columns, torch.from_numpy(rows)
+
+
+def _parting(ref: Path, got: Path, name: str) -> tuple[float, float, float, int | None]:
+    """How far video ``name``'s rows in folder ``got`` part from those in ``ref``: the most over its rows of the
+    translation's distance (mm), the rotation's angle (degrees, between the ``r00..r22`` matrices) and the
+    confidence's difference, and the first frame whose row differs (None: none does)."""
+    columns, a = _sweep_rows(ref, name)
+    _, b = _sweep_rows(got, name)
+    if a.shape != b.shape:
+        raise RuntimeError(f"{name}: {b.shape[0]} rows resumed, {a.shape[0]} uninterrupted")
+    at = [columns.index(c) for c in ("pose_Tx", "pose_Ty", "pose_Tz")]
+    ar = [columns.index(f"r{i}{j}") for i in range(3) for j in range(3)]
+    conf = columns.index("confidence")
+    mm = (a[:, at] - b[:, at]).norm(dim=-1)
+    deg = geodesic_angle_deg(a[:, ar].reshape(-1, 3, 3), b[:, ar].reshape(-1, 3, 3))
+    dc = (a[:, conf] - b[:, conf]).abs()
+    differ = (a != b).any(dim=-1).nonzero().flatten()
+    return (float(mm.max()), float(deg.nan_to_num(0.0).max()), float(dc.max()),
+            int(a[differ[0], 0]) if len(differ) else None)  # fmt: skip
+
+
+def resume_sweep(args: argparse.Namespace) -> None:
+    import hashlib
+    import json
+    import shutil
+    import tempfile
+
+    import numpy as np
+
+    import torchface.detect
+    import torchface.job
+    from torchface.job import JobConfig, track_videos
+    from torchface.synth.scenarios import make_scenario
+    from torchface.tracker.lookahead import LookaheadConfig
+    from torchface.tracker.smoothing import SmoothingConfig
+
+    w, h = args.size
+    frames, gt = render_sequence(make_scenario("pose_sweep", args.frames, w, h))
+    frames = frames if frames.dtype == torch.uint8 else (frames.clamp(0, 1) * 255).round().to(torch.uint8)
+    images = frames.permute(0, 2, 3, 1).contiguous().numpy()  # (T, H, W, 3) uint8 RGB, as the job's inputs
+    truth = {hashlib.blake2b(image.tobytes()).digest(): gt.landmarks_px[i].numpy().copy()
+             for i, image in enumerate(images)}  # fmt: skip
+
+    def rendered(image_rgb: np.ndarray) -> np.ndarray:  # the detector: the renderer's landmarks of that frame
+        key = hashlib.blake2b(np.ascontiguousarray(image_rgb).tobytes()).digest()
+        if key not in truth:
+            raise RuntimeError("the detector was given a frame that is not one of the sweep's")
+        return truth[key].copy()
+
+    root = Path(tempfile.mkdtemp(prefix="resume-sweep-"))
+    clips = []
+    for start in args.starts:
+        video, lm = root / f"from{start}.npy", root / f"from{start}.csv"
+        np.save(video, images[start:])
+        np.savetxt(lm, gt.landmarks_px[start].numpy(), delimiter=",", header="x,y", comments="")
+        clips.append((video, lm))
+    every, online = torchface.job.CHECKPOINT_EVERY, LookaheadConfig(max_frames=args.max_frames)
+    torchface.job.CHECKPOINT_EVERY = args.every
+    torchface.detect.DETECTORS["rendered"] = lambda: rendered
+    print(f"pose_sweep {w}x{h}, {args.frames} frames (the batch: from frames {', '.join(map(str, args.starts))}); "
+          f"interrupted after {args.stop} rows, a checkpoint every {args.every} rows from row {args.max_frames}; "
+          f"from rows: the most over rows and videos (mm, degrees, confidence; the first frame that differs); fps: "
+          f"the first video's frames/s uninterrupted, resumed from its checkpoint (replayed rows left out / counted)")
+    print(f"{'videos':<7} {'variant':<9} | {'checkpoint at':>13} {'not byte for byte':<18} | "
+          f"{'from rows: mm':>13} {'deg':>8} {'conf':>8} {'from':>5} | {'fps: whole':>10} {'resumed':>8} "
+          f"{'counted':>8}")  # fmt: skip
+    try:
+        for videos in args.videos:
+            batch = clips[:1] if videos == "alone" else clips
+            names = [v.stem for v, _ in batch]
+            for variant in args.variants:
+                kwargs: dict = {"refine_first": online, "landmarks": tuple(lm for _, lm in batch)}
+                if variant == "smooth":
+                    kwargs["smoothing"] = SmoothingConfig()
+                elif variant == "detector":  # (every frame below the threshold: a re-detection every N frames)
+                    kwargs.update(detector="rendered", redetect_after=args.redetect_every, redetect_below=1.01)
+                paths = [v for v, _ in batch]
+                ref = root / f"{videos}-{variant}-ref"
+                track_videos(paths, JobConfig(out_dir=ref, **kwargs))
+                outs = {}
+                for how in ("checkpoint", "rows"):
+                    out = outs[how] = root / f"{videos}-{variant}-{how}"
+
+                    stopped = []
+
+                    def interrupt(p: torchface.job.Progress) -> None:  # (a Ctrl-C between two steps)
+                        if p.done == args.stop and p.index == len(batch) - 1:
+                            stopped.append(p.done)
+                            raise KeyboardInterrupt
+
+                    try:
+                        track_videos(paths, JobConfig(out_dir=out, **kwargs), progress=interrupt)
+                    except KeyboardInterrupt:
+                        if not stopped:  # (the user's)
+                            raise
+                    if not stopped:
+                        raise RuntimeError(f"the run was not interrupted after {args.stop} rows")
+                    states = [out / f"{n}.state.partial" for n in names]
+                    if not all(s.is_file() for s in states):
+                        raise RuntimeError(f"no checkpoint after {args.stop} rows")
+                    rows = {int(torch.load(s, weights_only=True)["rows"]) for s in states}
+                    if how == "rows":
+                        for s in states:
+                            s.unlink()
+                    track_videos(paths, JobConfig(out_dir=out, resume=True, **kwargs))
+                    said = [json.loads((out / f"{n}.json").read_text())["resumed"]["checkpoint"] for n in names]
+                    if said != (["exact"] * len(names) if how == "checkpoint" else [False] * len(names)):
+                        raise RuntimeError(f"resumed from the {how}: the sidecars say checkpoint {said}")
+                differ = [n + x for n in names for x in (".csv", "_overlay.mp4", "_normalised.mp4")
+                          if (ref / (n + x)).read_bytes() != (outs["checkpoint"] / (n + x)).read_bytes()]
+                parts = [_parting(ref, outs["rows"], n) for n in names]
+                first = min((p[3] for p in parts if p[3] is not None), default=None)
+                mm, deg, conf = ((0.0, 0.0, 0.0) if first is None else
+                                 (max(p[0] for p in parts), max(p[1] for p in parts), max(p[2] for p in parts)))
+                timing = [json.loads((d / f"{names[0]}.json").read_text())["timings_s"]
+                          for d in (ref, outs["checkpoint"])]  # fmt: skip
+                counted = timing[1]["fps"] * (timing[1]["track"] - timing[1]["replay"]) / timing[1]["track"]
+                print(f"{videos:<7} {variant:<9} | {'/'.join(map(str, sorted(rows))):>13} "
+                      f"{' '.join(differ) or 'none':<18} | {mm:>13.3f} {deg:>8.3f} {conf:>8.3f} "
+                      f"{'none' if first is None else first:>5} | {timing[0]['fps']:>10.1f} {timing[1]['fps']:>8.1f} "
+                      f"{counted:>8.1f}", flush=True)  # fmt: skip
+    finally:
+        torchface.job.CHECKPOINT_EVERY = every
+        del torchface.detect.DETECTORS["rendered"]
+        shutil.rmtree(root, ignore_errors=True)
+
+
 def _numbers(text: str) -> list[float]:
     try:
         values = [float(v) for v in text.split(",")]
@@ -481,6 +628,17 @@ def _names(allowed: tuple[str, ...]) -> Callable[[str], list[str]]:
         return names
 
     return parse
+
+
+def _counts(text: str) -> list[int]:
+    """An argparse type: a comma list of distinct integers >= 0."""
+    try:
+        values = [int(v) for v in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected integers, comma separated, got {text!r}") from None
+    if min(values) < 0 or len(set(values)) < len(values):
+        raise argparse.ArgumentTypeError(f"expected distinct integers >= 0, got {text!r}")
+    return values
 
 
 def _positives(text: str) -> list[float]:
@@ -555,6 +713,22 @@ def main(argv: list[str] | None = None) -> int:
                    help="TrackerConfig.expression_prior_precision (default: its default)")
     p.add_argument("--shape-bound", type=float, default=None, help="FitConfig.shape_bound (default: its default)")
     p.set_defaults(run=other_models)
+    p = sub.add_parser("resume-sweep", help="a pose sweep interrupted and resumed (docs/cli.md: Interrupting ...)")
+    p.add_argument("--size", type=frame_size, default=(160, 120), help="frame size WxH")
+    p.add_argument("--frames", type=int, default=200, help="frames of the sweep")
+    p.add_argument("--starts", type=_counts, default=_counts("0,3,7"),
+                   help="the batch's videos: the sweep from these frames on, comma separated")
+    p.add_argument("--stop", type=int, default=170, help="interrupted once this many rows are written")
+    p.add_argument("--every", type=integer(1), default=None,
+                   help="rows between checkpoints (default: torchface.job.CHECKPOINT_EVERY)")
+    p.add_argument("--max-frames", type=integer(1), default=None,
+                   help="the online start's LookaheadConfig.max_frames (default: its default)")
+    p.add_argument("--redetect-every", type=integer(1), default=5, help="the detector variant's re-detections, frames")
+    p.add_argument("--variants", default="plain,smooth,detector", type=_names(("plain", "smooth", "detector")),
+                   help="plain, smooth (--smooth), detector; comma separated")
+    p.add_argument("--videos", default="alone,batch", type=_names(("alone", "batch")),
+                   help="alone (the sweep from its first frame), batch (from each of --starts); comma separated")
+    p.set_defaults(run=resume_sweep)
     args = parser.parse_args(argv)
     for name in ("clips", "frames", "draws", "runs"):
         if getattr(args, name, 1) < 1:
@@ -573,6 +747,19 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"no GRID clip in {args.grid} with its <clip>.csv in --landmarks-dir {args.landmarks_dir}")
     if args.figure == "lid-fit" and args.cache != "none" and (problem := folder_problem(Path(args.cache))):
         parser.error(f"--cache {args.cache}: {problem}")
+    if args.figure == "resume-sweep":
+        from torchface.job import CHECKPOINT_EVERY
+        from torchface.tracker.lookahead import LookaheadConfig
+
+        args.every = CHECKPOINT_EVERY if args.every is None else args.every
+        args.max_frames = LookaheadConfig().max_frames if args.max_frames is None else args.max_frames
+        # (the first checkpoint: the first multiple of --every from --max-frames on; the shortest video: the last
+        # start's)
+        first = -(-args.max_frames // args.every) * args.every
+        if not first <= args.stop < args.frames - max(args.starts):
+            last = args.frames - max(args.starts) - 1
+            parser.error(f"--stop must be from {first} (the first checkpoint's rows) to {last} (the shortest video's "
+                         f"frames, less one), got {args.stop}")
     torch.set_num_threads(1)
     args.run(args)
     return 0

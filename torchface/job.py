@@ -99,23 +99,24 @@ again (:func:`_checkpoint_batches`), their states joined (:func:`torchface._chec
 ``select``) after their last row (:func:`_joined`). Measured: a 200-frame 160x120 pose sweep interrupted after 170
 rows (its checkpoint at 150) resumed byte for byte as the uninterrupted run (CSV, overlay, normalised face) alone,
 with ``smoothing``, with a detector re-detecting every 5 frames and as a batch of 3 sweeps of 193-200 frames, where
-from its CSV's rows it went up to 1.03 mm, 1.2 degrees and 0.12 of confidence off (the batch: 3.9 mm, 3.3 degrees,
-0.65); cost: :data:`CHECKPOINT_EVERY`. Ctrl-C and SIGTERM within the loop wait for its step boundary
-(:class:`_AtStepBoundary`), where every live video's checkpoint of that state is written before the signal's
-handler raises: a resume tracks no row again (a second signal interrupts at once, mid-step, without it).
+from its CSV's rows (the checkpoint removed) it went up to 1.10 mm, 1.36 degrees (the distance between the
+translations, the angle between the rotations) and 0.12 of confidence off (the batch: 3.51 mm, 3.33 degrees, 0.65;
+``scripts/doc_figures.py resume-sweep``); cost: :data:`CHECKPOINT_EVERY`. Ctrl-C and SIGTERM within the loop wait
+for its step boundary (:class:`_AtStepBoundary`), where every live video's checkpoint of that state is written before
+the signal's handler raises: a resume tracks no row again (a second signal interrupts at once, mid-step, without it).
 For the others (``max_frames`` rows or more, without a checkpoint) the template mosaic built before the interruption
 is not restored: on a
 clip whose head turns, the resumed rows can part from the uninterrupted run's by tenths of a degree to a degree once
-the mosaic is used (measured: up to 0.4 degrees of yaw and 0.9 mm, with the same error against the ground truth; a
-200-frame 160x120 pose sweep resumed after 170 rows, up to 1.05 mm, 1.4 degrees and 0.12 of confidence). Their
-``confidence`` can part by more, as it is measured against the mosaic entry nearest the pose, which the resumed run
-may not have built again (measured when such videos resumed sooner went on from their rows too: a 300-frame clip
-(160x120, its head turning back and forth) resumed at frame 104 went on at the same poses (within 3e-5 degrees) and
-statuses, but frames that the uninterrupted run scored 0.22 against such an entry scored 0.93 against the first
-frame's, mean confidence 0.88 against 0.78). A loss can end at another frame for the same reason: on a 160x120 clip
-interrupted in a loss (frames of noise) and resumed from its rows, the uninterrupted run's tracking found the face
-again at the first frame after the noise against the re-anchoring frame's entry (confidence 0.77), the resumed run
-(which lacked it) a frame later, at its recovery attempt.
+the mosaic is used (measured: up to 0.4 degrees of yaw and 0.9 mm, with the same error against the ground truth; the
+200-frame 160x120 pose sweep above resumed after 170 rows without its checkpoint, up to 1.10 mm, 1.36 degrees and
+0.12 of confidence). Their ``confidence`` can part by more, as it is measured against the mosaic entry nearest the
+pose, which the resumed run may not have built again (measured when such videos resumed sooner went on from their
+rows too: a 300-frame clip (160x120, its head turning back and forth) resumed at frame 104 went on at the same poses
+(within 3e-5 degrees) and statuses, but frames that the uninterrupted run scored 0.22 against such an entry scored
+0.93 against the first frame's, mean confidence 0.88 against 0.78). A loss can end at another frame for the same
+reason: on a 160x120 clip interrupted in a loss (frames of noise) and resumed from its rows, the uninterrupted run's
+tracking found the face again at the first frame after the noise against the re-anchoring frame's entry (confidence
+0.77), the resumed run (which lacked it) a frame later, at its recovery attempt.
 """
 
 from __future__ import annotations
@@ -3493,8 +3494,9 @@ def _finalise(
     # (a resumed video's rows tracked again for the online start are tracked frames: their time is in t_track; counted
     # only its new rows, a 40-frame 160x120 pose sweep resumed after 20 rows gave 16-17 frames/s where the
     # uninterrupted run gave 28-32, and 32-34 now. Its rows replayed from the CSV are not, nor is the time spent
-    # redrawing them, s.t_replay: counted, a 200-frame sweep resumed after 170 rows gave 7.4 frames/s where the
-    # uninterrupted run gave 33; not counted, 32 where it gave 49: the 50 frames from its checkpoint a short run's)
+    # redrawing them, s.t_replay: counted, a 200-frame sweep resumed after 170 rows from its checkpoint at 150 gave
+    # 10 frames/s (median of 6 runs on a shared 2-core machine, 3.5-15) where the uninterrupted run gave 20 (14-30);
+    # not counted, 23 (17-46): scripts/doc_figures.py resume-sweep)
     fps = (s.tracked + s.tracked_again) / max(t_track - s.t_replay, 1e-9) if t_track > 0 else 0.0
     # (the batch's frames over its time: B * fps overstated it by the other videos' shortfall, and differed from
     # video to video of one batch where their lengths differ; without the time in which every video replayed)

@@ -33,6 +33,9 @@ def _usage_error(main, argv, capsys) -> str:
     (["grid-pan", "--grid", str(SCRIPTS / "data"), "--clip", "x"], "no GRID clip x.mpg"),
     (["grid-bounds", "--precisions", "2,0"], "must be a number > 0"),
     (["grid-bounds", "--grid", str(SCRIPTS / "data")], "no GRID clip in"),
+    (["resume-sweep", "--stop", "149"], "--stop must be from 150 (the first checkpoint's rows) to 192"),
+    (["resume-sweep", "--frames", "20", "--every", "4", "--max-frames", "6", "--stop", "7"], "--stop must be from 8"),
+    (["resume-sweep", "--starts", "0,3,3"], "expected distinct integers >= 0"),
 ])  # fmt: skip
 def test_doc_figures_refuses_bad_arguments_before_any_work(argv, message, capsys, monkeypatch):
     """Each was a traceback (a bad --photos / --areas name, --frames 1, a negative --restart-after-unmatched) after

@@ -524,6 +524,24 @@ def test_doc_figures_measures_on_tiny_runs(capsys):
         assert message in _usage_error(figures.main, argv, capsys)
 
 
+def test_doc_figures_resume_sweep_runs_on_a_tiny_sweep(capsys):
+    """doc_figures.py resume-sweep (docs/cli.md's figures of a sweep interrupted and resumed) on a 14-frame sweep,
+    a checkpoint every 4 rows from row 4, interrupted after 10 rows: alone and as a batch of two, each resumed from
+    its checkpoint (that of 8 rows, which it reads back) and from its rows; the rows before the interruption are
+    never among those that part (the first differing frame, where one differs, is 10 or later)."""
+    figures = _load("doc_figures")
+    argv = ["resume-sweep", "--frames", "14", "--starts", "0,2", "--stop", "10", "--every", "4", "--max-frames", "4",
+            "--variants", "plain"]  # fmt: skip
+    assert figures.main(argv) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].startswith("pose_sweep 160x120, 14 frames (the batch: from frames 0, 2); interrupted after 10")
+    rows = [[cell.split() for cell in line.split("|")] for line in lines[2:]]
+    assert [r[0] for r in rows] == [["alone", "plain"], ["batch", "plain"]]
+    assert all(r[1][0] == "8" for r in rows)  # the checkpoint resumed from
+    assert all(r[2][3] == "none" or int(r[2][3]) >= 10 for r in rows)
+    assert all(len(r[3]) == 3 and all(float(v) > 0 for v in r[3]) for r in rows)  # frames/s
+
+
 def test_evaluate_eyelids_sets_the_eyelid_configuration(monkeypatch):
     """--eyelids (docs/limitations.md, eyes closed) tracks with expression quota 0.06, sparsity 0.03, the
     conservative prior on unconfident frames and an online start that keeps the landmark fit's eyelids; a quota or
