@@ -413,11 +413,14 @@ class VideoSummary:
         frames: frames in the CSV; lost: frames whose estimate is not usable (``success`` 0: failed, or the
             stream lost); mean_confidence: over all frames.
         fps: this video's frames per second: its tracked frames over the wall time of the batch's per-frame
-            loop (tracking plus writing every output; the streams of one batch share that time, so the batch
-            as a whole runs at the sum of its videos' ``fps``, the sidecar's ``timings_s.batch_fps``; a video
-            shorter than others of its batch gets a lower ``fps``; resumed, its rows tracked again for the online
-            start count as tracked frames, the rows replayed from its CSV, only drawn, do not); skipped: True when
-            ``resume`` found it complete.
+            loop (tracking plus writing every output) while the video was in the batch, from the loop's start until
+            its last frame (the sidecar's ``timings_s.active``; the batch's whole loop, ``timings_s.track``, for the
+            videos that ended last). The streams of one batch share that time: where its videos have one length the
+            batch runs at the sum of their ``fps``; the batch's own rate is the sidecar's ``timings_s.batch_fps``
+            (its frames over its loop's time). Resumed, its rows tracked again for the online start count as
+            tracked frames, the rows replayed from its CSV, only drawn, do not. skipped: True when ``resume``
+            found it complete (not tracked again; another sense than :class:`Progress`'s ``skipped``, an input
+            that ``keep_going`` could not track, whose summary has ``refused`` or ``stopped`` set).
         declared_frames: the frame count the input declares (a video container's), when known and the frames
             decoded fell short of it (a truncated or damaged file); None otherwise.
         refused: with ``JobConfig.keep_going``, why the input was skipped without being tracked: the error that
@@ -1057,6 +1060,9 @@ class _Stream:
     # seconds of the loop spent on its rows replayed from the CSV (redrawn; tracked again not): timings_s.replay,
     # left out of its fps (timings_s.fps: the frames tracked in this run over the time spent tracking them)
     t_replay: float = 0.0
+    # seconds from the loop's start until it left the batch (its video ended: the batch's per-frame loop time it was
+    # in, timings_s.active; None while it is in it): its fps is its frames over this time, not over the whole loop's
+    t_active: float | None = None
     frames: int = 0
     tracked: int = 0
     done: bool = False
@@ -3223,7 +3229,7 @@ def _track_group(
                         if s.done:  # its decoder (file, threads, buffers) not kept; its stream leaves the batch below
                             s.reader.close()
                     nxt.append(s.frame())
-                now = time.perf_counter()  # (this frame's rows written, the next frames read)
+                now = t_read = time.perf_counter()  # (this frame's rows written, the next frames read)
                 for s in redrawn:
                     s.t_replay += now - t_iter
                 t_idle += (now - t_iter) if len(redrawn) == len(live) else 0.0
@@ -3232,7 +3238,8 @@ def _track_group(
                     elapsed = time.perf_counter() - t_track0
                     for k, s in enumerate(streams):
                         total = s.frames if s.done and s.error is None else s.total
-                        fps = (s.tracked + s.tracked_again) / max(elapsed - s.t_replay, 1e-9)  # (timings_s.fps)
+                        active = elapsed if s.t_active is None else s.t_active  # (an ended video's: not growing)
+                        fps = (s.tracked + s.tracked_again) / max(active - s.t_replay, 1e-9)  # (timings_s.fps)
                         progress(Progress(members[k], count, s.name, s.frames, total, fps, s.confidence))
                 if all(s.done for s in live):
                     break
@@ -3242,6 +3249,9 @@ def _track_group(
                     # batch (tracked as in the whole one; kept in it, an ended video's last frame was tracked again at
                     # every step until the longest video ended)
                     _keep_final(state, live, layout, [k for k in range(len(live)) if live[k].done])
+                    for k in range(len(live)):
+                        if k not in keep:
+                            live[k].t_active = t_read - t_track0
                     if any(live[k].error is not None for k in range(len(live)) if k not in keep):  # (a video stopped:
                         for s in live:  # the batch goes on smaller than the uninterrupted run's)
                             s.from_checkpoint = "split" if s.from_checkpoint else False
@@ -3271,6 +3281,8 @@ def _track_group(
                         s.t_replay += now - t_iter
                 t_iter = now
         t_track = time.perf_counter() - t_track0
+        for s in live:  # (the videos that ended last: in the batch for the whole loop)
+            s.t_active = t_track
         _keep_final(state, live, layout, list(range(len(live))))
     except BaseException:  # (a signal that waited: its interruption, run as the loop's block ended, keeps the error)
         for s in batch:
@@ -3497,7 +3509,10 @@ def _finalise(
     # redrawing them, s.t_replay: counted, a 200-frame sweep resumed after 170 rows from its checkpoint at 150 gave
     # 10 frames/s (median of 6 runs on a shared 2-core machine, 3.5-15) where the uninterrupted run gave 20 (14-30);
     # not counted, 23 (17-46): scripts/doc_figures.py resume-sweep)
-    fps = (s.tracked + s.tracked_again) / max(t_track - s.t_replay, 1e-9) if t_track > 0 else 0.0
+    # (over the time it was in the batch, s.t_active: over the whole loop's, t_track, a 3-frame video tracked in one
+    # batch with a longer one reported 0.0083 frames/s where the batch ran at 2.6)
+    active = t_track if s.t_active is None else s.t_active
+    fps = (s.tracked + s.tracked_again) / max(active - s.t_replay, 1e-9) if t_track > 0 else 0.0
     # (the batch's frames over its time: B * fps overstated it by the other videos' shortfall, and differed from
     # video to video of one batch where their lengths differ; without the time in which every video replayed)
     batch_fps = (sum(x.tracked + x.tracked_again for x in streams) / max(t_track - t_idle, 1e-9) if t_track > 0
@@ -3526,7 +3541,8 @@ def _finalise(
         "start": _start_record(config, s),
         "pyramid_levels": levels,
         "initial_landmarks_px": s.landmarks.tolist(),  # (a file's missing point, NaN: [null, null])
-        "timings_s": {"initialise": t_init, "track": t_track, "replay": s.t_replay, "fps": fps, "batch_fps": batch_fps},
+        "timings_s": {"initialise": t_init, "track": t_track, "active": active, "replay": s.t_replay, "fps": fps,
+                      "batch_fps": batch_fps},
         "resumed": _resumed_record(s),
         "frames": int(len(rows)),
         "declared_frames": s.total,

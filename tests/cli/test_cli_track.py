@@ -579,15 +579,20 @@ def test_a_pts_landmarks_file_tracks_as_its_csv_form(clip, tmp_path, capsys):
 
 def test_batch_fps_is_the_batchs_frames_over_its_time(clip, tmp_path):
     """``timings_s.batch_fps`` was ``B * fps`` of each video: in a batch of a 3-frame and a 1-frame video the two
-    sidecars gave two different speeds for one batch, the longer one's 1.5 times the batch's."""
+    sidecars gave two different speeds for one batch, the longer one's 1.5 times the batch's. And a video's ``fps``
+    was its frames over the whole batch's loop: the short one's fell with the long one's length (a 3-frame video in a
+    batch with a long one: 0.0083 frames/s where the batch ran at 2.6); it is over the time it was in the batch."""
     video, lm, _ = clip
     inputs = [_short_npy(video, tmp_path / "long.npy", 3), _short_npy(video, tmp_path / "short.npy", 1)]
     out = tmp_path / "out"
-    track_videos(inputs, JobConfig(out_dir=out, landmarks=(lm, lm), refine_first=None))
+    summaries = track_videos(inputs, JobConfig(out_dir=out, landmarks=(lm, lm), refine_first=None))
     timings = [json.loads((out / f"{name}.json").read_text())["timings_s"] for name in ("long", "short")]
     assert timings[0]["track"] == timings[1]["track"] > 0
     assert timings[0]["batch_fps"] == timings[1]["batch_fps"] == pytest.approx(4 / timings[0]["track"])
-    assert timings[0]["fps"] + timings[1]["fps"] == pytest.approx(timings[0]["batch_fps"])
+    assert timings[0]["active"] == timings[0]["track"]  # (the long one: in the batch for the whole loop)
+    assert 0 < timings[1]["active"] < timings[0]["track"]  # (the short one left it after its frame, 2 steps before)
+    for t, frames, s in zip(timings, (3, 1), summaries):
+        assert t["replay"] == 0.0 and t["fps"] == pytest.approx(frames / t["active"]) and s.fps == t["fps"]
 
 
 def test_a_fresh_run_interrupted_in_its_first_batch_leaves_no_earlier_complete_outputs(clip, tmp_path):
