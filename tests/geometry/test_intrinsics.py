@@ -223,3 +223,31 @@ def test_the_mixed_up_warning_pickles_and_copies_with_its_camera() -> None:
     for copied in (pickle.loads(pickle.dumps(warning)), copy.deepcopy(warning), copy.copy(warning)):
         assert type(copied) is MixedUpIntrinsics and str(copied) == str(warning) and copied.intrinsics == camera
         assert copied.args == warning.args and copied.__notes__ == ["while initialising stream 3"]
+
+
+@pytest.mark.parametrize(
+    "given, said",
+    [
+        (torch.tensor([[600.0, 0, 319.5], [0, 600.0, 239.5], [0, 0, 1]]), r"Intrinsics.from_matrix\(K, width, height\)"),
+        (np.array([[600.0, 0, 319.5], [0, 600.0, 239.5], [0, 0, 1]]), r"Intrinsics.from_matrix\(K, width, height\)"),
+        ([[600.0, 0, 319.5], [0, 600.0, 239.5], [0, 0, 1]], r"Intrinsics.from_matrix\(K, width, height\)"),
+        ((600.0, 600.0, 319.5, 239.5), r"Intrinsics\(width, height, fx, fy, cx, cy\), in pixels"),
+        ([640, 480, 600.0, 600.0, 319.5, 239.5], r"Intrinsics\(width, height, fx, fy, cx, cy\), in pixels"),
+    ],
+    ids=["tensor-K", "numpy-K", "list-K", "fx-fy-cx-cy", "size-and-numbers"],
+)
+def test_a_camera_given_as_a_matrix_or_numbers_is_told_how_to_make_intrinsics(given, said) -> None:
+    """``initialise(frames, landmarks, intrinsics)`` given OpenCV's 3x3 ``cameraMatrix`` or a tuple of the camera's
+    numbers (session 63's Python-API audit) was told "intrinsics must be torchface.geometry.Intrinsics, got Tensor"
+    alone; it names the constructor that makes one of them, and that constructor makes the camera."""
+    from torchface.geometry._checks import check_intrinsics
+
+    with pytest.raises(TypeError, match=r"^intrinsics must be torchface.geometry.Intrinsics, got \w+ \(.*" + said):
+        check_intrinsics(given)
+    if np.shape(np.asarray(given)) == (3, 3):
+        cam = Intrinsics.from_matrix(given, 640, 480)
+    else:
+        cam = Intrinsics(640, 480, *[float(v) for v in list(given)[-4:]])
+    assert (cam.fx, cam.fy, cam.cx, cam.cy) == (600.0, 600.0, 319.5, 239.5)
+    with pytest.raises(TypeError, match=r"^intrinsics must be torchface.geometry.Intrinsics, got NoneType$"):
+        check_intrinsics(None)  # (nothing to say of another type)

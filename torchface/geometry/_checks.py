@@ -325,8 +325,28 @@ def check_exact_dim(x: torch.Tensor, name: str, dims: tuple[int, ...], shape_doc
 def check_intrinsics(intrinsics: object) -> Intrinsics:
     """Raise ``TypeError`` unless ``intrinsics`` is an :class:`Intrinsics`."""
     if not isinstance(intrinsics, Intrinsics):
-        raise TypeError(f"intrinsics must be torchface.geometry.Intrinsics, got {type(intrinsics).__name__}")
+        raise TypeError(f"intrinsics must be torchface.geometry.Intrinsics, got {type(intrinsics).__name__}"
+                        f"{_intrinsics_type_hint(intrinsics)}")  # fmt: skip
     return intrinsics
+
+
+def _intrinsics_type_hint(value: object) -> str:
+    """How to make an :class:`Intrinsics` of what a user passed instead, for :func:`check_intrinsics`' message: a 3x3
+    calibration matrix (OpenCV's ``cameraMatrix``, a tensor, array or nested lists) or a sequence of the numbers
+    (``fx, fy, cx, cy`` or with the size). Both were told the type alone."""
+    shape: tuple[int, ...] | None = None
+    if isinstance(value, (torch.Tensor, np.ndarray)):
+        shape = tuple(value.shape)
+    elif isinstance(value, (list, tuple)):
+        try:
+            shape = tuple(np.shape(np.asarray(value, dtype=object)))
+        except ValueError:  # (ragged)
+            shape = None
+    if shape == (3, 3):
+        return " (a 3x3 calibration matrix K: Intrinsics.from_matrix(K, width, height))"
+    if shape in ((4,), (6,)):
+        return " (the camera's numbers: Intrinsics(width, height, fx, fy, cx, cy), in pixels)"
+    return ""
 
 
 def check_batch(b1: int, b2: int, name1: str, name2: str) -> None:
