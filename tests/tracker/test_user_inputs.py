@@ -549,6 +549,23 @@ def test_normalised_face_mistakes_are_told_what_to_pass(clip):
     assert normaliser(frames[:1], tracker.state).image.shape == (1, 3, 128, 128)
 
 
+def test_normalised_face_given_the_tracker_for_its_state_is_told_to_pass_the_state(clip):
+    """``NormalisedFace(model)(frames, tracker)``, the tracker where its state goes (session 63's Python-API audit),
+    was told "estimate must be a TrackResult or a TrackerState, got FaceTracker" alone, before ``initialise`` and
+    after; it names ``tracker.state``, which gives the face."""
+    frames, lm = clip
+    tracker = FaceTracker(CFG)
+    normaliser = NormalisedFace(tracker.model)
+    message = r"^estimate must be a TrackResult or a TrackerState, got FaceTracker: pass its state, " \
+              r"normaliser\(frames, tracker.state\)$"  # fmt: skip
+    with pytest.raises(TypeError, match=message):
+        normaliser(frames[:1], tracker)  # type: ignore[arg-type]
+    tracker.initialise(frames[:1], lm[None])
+    with pytest.raises(TypeError, match=message):
+        normaliser(frames[:1], tracker)  # type: ignore[arg-type]
+    assert normaliser(frames[:1], tracker.state).image.shape == (1, 3, 128, 128)
+
+
 def test_landmarks_far_too_large_fail_the_start_and_the_next_step_runs(clip):
     """Landmarks in the wrong unit, 255 times too large (a 0-255 scale taken for pixels), gave the automatic pyramid
     7 levels on 160x120 frames, more than the step's least crop (64 pixels) can make: the start failed as it should

@@ -804,6 +804,7 @@ class NormalisedFace(DeviceCheckedModule):
         Returns:
             :class:`NormalisedFaceResult` ``(image (B, C, G, G), mask (B, 1, G, G))``.
         """
+        from torchface.tracker.module import FaceTracker
         from torchface.tracker.params import ParamLayout
         from torchface.tracker.step import TrackerState, TrackResult
 
@@ -841,9 +842,12 @@ class NormalisedFace(DeviceCheckedModule):
                 estimate.illumination, intrinsics,
             )  # fmt: skip
         # (tracker.state before initialise, and the arguments swapped, were told the type alone)
+        # (the tracker itself, for its state: told the type alone)
         hint = (": tracker.state is None until tracker.initialise(...)" if estimate is None
                 else ": the frames come first, normaliser(frames, tracker.state)" if isinstance(estimate, Tensor)
-                and isinstance(frames, (TrackResult, TrackerState)) else "")  # fmt: skip
+                and isinstance(frames, (TrackResult, TrackerState))
+                else ": pass its state, normaliser(frames, tracker.state)" if isinstance(estimate, FaceTracker)
+                else "")  # fmt: skip
         raise TypeError(f"estimate must be a TrackResult or a TrackerState, got {type(estimate).__name__}{hint}")
 
     def from_params(
