@@ -435,6 +435,23 @@ def test_config_validation():
             TrackerConfig(solver=bad)  # type: ignore[arg-type]  # "fast" ran the reference solver
 
 
+def test_config_template_none_or_false_is_told_how_to_turn_template_management_off():
+    """``TrackerConfig(template=None)`` or ``template=False``, a user's way to track without template management
+    (session 63's Python-API audit), was told "template must be a TemplateConfig, got NoneType" alone; it names
+    ``TemplateConfig(enabled=False)`` and where it imports from, which makes a config. Another type is told the type
+    alone, as before."""
+    from torchface.tracker import TemplateConfig
+
+    for bad, got in ((None, "NoneType"), (False, "bool")):
+        with pytest.raises(TypeError, match=rf"^template must be a TemplateConfig, got {got} \(template management "
+                                            r"off: template=TemplateConfig\(enabled=False\), TemplateConfig from "
+                                            r"torchface.tracker\)$"):  # fmt: skip
+            TrackerConfig(template=bad)
+    with pytest.raises(TypeError, match=r"^template must be a TemplateConfig, got str$"):
+        TrackerConfig(template="default")
+    assert not TrackerConfig(template=TemplateConfig(enabled=False)).template.enabled
+
+
 def test_config_refuses_settings_that_failed_later_or_tracked_wrongly():
     """Each of these was accepted: fit/template of another type ended in an AttributeError at initialise
     ('NoneType' object has no attribute 'enabled'), num_levels=2.0 in range()'s TypeError, robust_c=-1 in "c must be a

@@ -370,7 +370,10 @@ class TrackerConfig:
         if not isinstance(self.fit, FitConfig):
             raise TypeError(f"fit must be a FitConfig, got {type(self.fit).__name__}")
         if not isinstance(self.template, TemplateConfig):
-            raise TypeError(f"template must be a TemplateConfig, got {type(self.template).__name__}")
+            # (template=None or False, to track without template management, was told the type alone)
+            off = (" (template management off: template=TemplateConfig(enabled=False), TemplateConfig from "
+                   "torchface.tracker)" if self.template is None or self.template is False else "")  # fmt: skip
+            raise TypeError(f"template must be a TemplateConfig, got {type(self.template).__name__}{off}")
         for name in ("use_illumination", "use_expression", "zbuffer_visibility", "expression_prior_at_start",
                      "expression_range_from_start"):
             object.__setattr__(self, name, check_bool(getattr(self, name), name))  # "no" was true
