@@ -316,6 +316,37 @@ def test_a_detector_mixing_pixels_and_normalised_points_fails_those_streams_alon
 
 
 @pytest.mark.parametrize(
+    "answer, error, hint",
+    [
+        (lambda lm, b: lm.numpy(), TypeError, r"got ndarray \(one image's answer\? .*torchface.detect.batched"),
+        (lambda lm, b: None, TypeError, r"got NoneType \(one image's answer\? .*torchface.detect.batched"),
+        (lambda lm, b: lm, ValueError, r"got \(68, 2\) \(one image's answer\? .*torchface.detect.batched"),
+        (lambda lm, b: lm[None].expand(b, -1, -1).numpy(), TypeError, r"got ndarray \(a NumPy array: "
+                                                                       r"torch.from_numpy\(landmarks\)\)$"),
+        (lambda lm, b: [lm] * b, TypeError, r"got list \(a list: torch.stack of the streams' \(K, 2\) tensors\)$"),
+    ],
+    ids=["per-image-array", "per-image-none", "one-frame-tensor", "numpy-batch", "list"],
+)
+def test_a_detector_answering_one_images_points_or_numpy_is_told_what_to_return(clip, answer, error, hint):
+    """A user's own detector given to ``FaceTracker(detector=...)`` that answers as a per-image detector does (one
+    image's ``(68, 2)`` array, or None for no face), or a batch as NumPy or a list (session 63's Python-API audit),
+    was told "the detector must return a (1, 68, 2) tensor ..., got ndarray" alone, at the first recovery attempt;
+    it is told ``torchface.detect.batched`` or how to make the tensor, and the detector so made re-initialises."""
+    from torchface.detect import batched
+
+    frames, lm = clip
+    tracker = FaceTracker(CFG, detector=lambda batch: answer(lm, batch.shape[0]))
+    tracker.initialise(frames[:1], torch.full((1, 68, 2), float("nan")))  # FAILED: the detector is asked next
+    with pytest.raises(error, match=r"^the detector must return .*" + hint):
+        for t in (1, 2, 1, 2, 1, 2):  # (to the first recovery attempt)
+            tracker(frames[t : t + 1])
+    tracker = FaceTracker(CFG, detector=batched(lambda image: lm.numpy()))
+    tracker.initialise(frames[:1], torch.full((1, 68, 2), float("nan")))
+    statuses = [int(tracker(frames[t : t + 1]).status) for t in (1, 2, 1, 2, 1, 2)]
+    assert statuses[-1] != LOST, statuses
+
+
+@pytest.mark.parametrize(
     "make, hint",
     [
         (lambda lm: lm.numpy(), r"got ndarray \(a NumPy array of one stream's \(K, 2\) points, as read_landmarks gives "

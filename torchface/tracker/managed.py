@@ -769,14 +769,24 @@ def _check_detector_output(landmarks: object, count: int, k: int, width: int, he
         others (two detectors behind one) raised at a restart of the normalised streams alone, and had those
         streams fitted as pixels (failed, LOST without a word) when asked together with the others.
     """
+    # (a per-image detector's answer, one image's (K, 2) array or None, and a batch's as NumPy were told the type
+    # alone, at the first recovery attempt)
+    per_image = (" (one image's answer? The detector is called with the (B, 3, H, W) frames of the streams it "
+                 "re-initialises; a per-image detector, image -> (68, 2) points or None: "
+                 "torchface.detect.batched(detector))")  # fmt: skip
     if not isinstance(landmarks, Tensor):
+        shape = getattr(landmarks, "shape", None)
+        hint = (per_image if landmarks is None or shape == (k, 2)
+                else " (a NumPy array: torch.from_numpy(landmarks))" if shape == (count, k, 2)
+                else " (a list: torch.stack of the streams' (K, 2) tensors)" if isinstance(landmarks, list) else "")
         raise TypeError(f"the detector must return a ({count}, {k}, 2) tensor of pixel landmarks (NaN rows: no "
-                        f"face), got {type(landmarks).__name__}")  # fmt: skip
+                        f"face), got {type(landmarks).__name__}{hint}")  # fmt: skip
     if landmarks.dtype == torch.bool or landmarks.is_complex():
         raise TypeError(f"the detector must return real pixel coordinates (float or int), got {landmarks.dtype}")
     if tuple(landmarks.shape) != (count, k, 2):
         got = tuple(landmarks.shape)
-        raise ValueError(f"the detector must return ({count}, {k}, 2) landmarks (NaN rows: no face), got {got}")
+        hint = per_image if got == (k, 2) else ""
+        raise ValueError(f"the detector must return ({count}, {k}, 2) landmarks (NaN rows: no face), got {got}{hint}")
     problem = landmark_rows_problem(landmarks, weighted=False)
     if problem is not None:  # (refused where a user gives them; a running track is not stopped: missing, with a word)
         warnings.warn(f"the detector's {problem}: those points are taken as missing", RuntimeWarning, stacklevel=2)
