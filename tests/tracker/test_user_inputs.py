@@ -201,6 +201,31 @@ def test_negative_nan_or_infinite_landmark_weights_are_refused(clip, bad, said):
     assert int(tracker.initialise(frames[:1], lm[None], weights=weights).status) == CONVERGED
 
 
+def test_landmark_weights_of_one_stream_or_with_a_trailing_axis_are_told_how_to_make_them(clip):
+    """Weights ``(K,)`` (one per landmark, as a (68, 2) landmarks file's rows) or ``(B, K, 1)`` given to ``initialise``
+    or ``fit_landmarks`` (session 63's Python-API audit) were told "weights must be (1, 68), got (68,)" alone, where
+    landmarks of one stream are told ``landmarks_px[None]``; the hint given makes weights that start the streams."""
+    from torchface.model import load_candide3
+    from torchface.geometry import Intrinsics
+    from torchface.tracker import fit_landmarks
+
+    frames, lm = clip
+    w = torch.ones(68)
+    with pytest.raises(ValueError, match=r"^weights must be \(1, 68\), got \(68,\) \(one per landmark: weights\[None\]\)$"):
+        FaceTracker(CFG).initialise(frames[:1], lm[None], weights=w)
+    with pytest.raises(ValueError, match=r"^weights must be \(2, 68\), got \(68,\) \(one per landmark: "
+                                        r"weights\[None\].expand\(2, -1\) for every stream\)$"):  # fmt: skip
+        FaceTracker(CFG).initialise(frames[:2], torch.stack([lm, lm]), weights=w)
+    with pytest.raises(ValueError, match=r"^weights must be \(1, 68\), got \(1, 68, 1\) \(a trailing axis: "
+                                        r"weights\[..., 0\]\)$"):  # fmt: skip
+        FaceTracker(CFG).initialise(frames[:1], lm[None], weights=w[None, :, None])
+    with pytest.raises(ValueError, match=r"^weights must be \(B, K\) = \(1, 68\), got \(68,\) \(one per landmark"):
+        fit_landmarks(load_candide3(), lm[None], Intrinsics.default(W, H), weights=w)
+    result = FaceTracker(CFG).initialise(frames[:2], torch.stack([lm, lm]), weights=w[None].expand(2, -1))
+    assert result.status.tolist() == [CONVERGED, CONVERGED]
+    assert int(FaceTracker(CFG).initialise(frames[:1], lm[None], weights=w[None, :, None][..., 0]).status) == CONVERGED
+
+
 def test_intrinsics_that_look_mixed_up_are_named_and_tracked(clip):
     """Intrinsics in OpenCV's matrix order (``fx, cx, fy, cy`` for ``fx, fy, cx, cy``) were tracked without a word
     (a camera that sees the face 2x stretched); a size swapped or given among the other numbers was told the size

@@ -432,6 +432,17 @@ def landmark_rows_problem(landmarks_px: Tensor, *, weighted: bool = True) -> str
     return "; ".join(problems) or None
 
 
+def _weights_shape_hint(got: tuple[int, ...], batch: int, count: int) -> str:
+    """How to make ``(batch, count)`` landmark weights of weights shaped ``got``, for a message refusing them: one
+    weight per landmark for every stream ``(K,)``, or a trailing axis ``(B, K, 1)``, as landmarks' ``(B, K, 2)``
+    suggests (both were told the shapes alone); empty otherwise."""
+    if got == (count,):
+        return " (one per landmark: weights[None]" + (")" if batch == 1 else f".expand({batch}, -1) for every stream)")
+    if got == (batch, count, 1):
+        return " (a trailing axis: weights[..., 0])"
+    return ""
+
+
 def check_landmark_values(
     landmarks_px: Tensor, weights: Tensor | None = None, *, name: str = "landmarks_px", weights_name: str = "weights"
 ) -> None:
@@ -617,7 +628,8 @@ def _check_landmarks(
     if weights is not None and not isinstance(weights, Tensor):  # a list or numpy array: an AttributeError
         raise TypeError(f"weights must be a ({B}, {k}) tensor or None, got {type(weights).__name__}")
     if weights is not None and weights.shape != (B, k):
-        raise ValueError(f"weights must be (B, K) = ({B}, {k}), got {tuple(weights.shape)}")
+        raise ValueError(f"weights must be (B, K) = ({B}, {k}), got {tuple(weights.shape)}"
+                         f"{_weights_shape_hint(tuple(weights.shape), B, k)}")  # fmt: skip
     check_landmark_values(landmarks_px, weights)
     # contiguous: the fit's sums over the points follow the memory order (a transposed view's fit was 5e-4 mm off)
     lm = landmarks_px.to(dtype=dtype, device=device).contiguous()

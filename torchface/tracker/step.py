@@ -46,8 +46,9 @@ from torchface.template.management import TemplateConfig
 from torchface.template.points import Template, build_template
 from torchface.tracker.fast import FUNCTION_TOLERANCE, STEP_TOLERANCE, LevelCamera, robust_scale_of, solve_level
 from torchface.tracker.fit import (
-    MIN_FIT_LANDMARKS, FitConfig, LandmarkFit, _landmark_width_mm, check_landmark_type, check_landmark_values,
-    check_model_landmarks, check_pixel_landmarks, fit_landmarks, landmark_targets, normalised_streams,
+    MIN_FIT_LANDMARKS, FitConfig, LandmarkFit, _landmark_width_mm, _weights_shape_hint, check_landmark_type,
+    check_landmark_values, check_model_landmarks, check_pixel_landmarks, fit_landmarks, landmark_targets,
+    normalised_streams,
 )
 from torchface.tracker.inference import without_autograd
 from torchface.tracker.objective import frame_residuals, warp_points
@@ -1052,7 +1053,8 @@ def check_initialise_inputs(
     if weights is not None and not isinstance(weights, Tensor):
         raise TypeError(f"weights must be a ({B}, {K}) tensor or None, got {type(weights).__name__}")
     if weights is not None and tuple(weights.shape) != (B, K):
-        raise ValueError(f"weights must be ({B}, {K}), got {tuple(weights.shape)}")
+        raise ValueError(f"weights must be ({B}, {K}), got {tuple(weights.shape)}"
+                         f"{_weights_shape_hint(tuple(weights.shape), B, K)}")  # fmt: skip
     if weights is not None:
         check_holds_data(weights, "weights")
     check_landmark_values(landmarks_px, weights)  # (infinite or half-NaN rows; NaN, infinite, negative weights)
