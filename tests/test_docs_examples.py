@@ -50,6 +50,8 @@ RUN_HERE = {
     ("docs/python-api.md", "Frames and landmarks"): "test_frames_and_landmarks_block_tracks_the_packaged_clip_anywhere",
     ("docs/python-api.md", "Saving a model for `torchface track`"):
         "test_saving_a_model_block_runs_on_candide3_written_as_an_obj",
+    ("docs/python-api.md", "Streams, and failed starts"):
+        "test_videos_of_different_lengths_block_tracks_each_video_to_its_end",
 }  # fmt: skip
 RUN_ELSEWHERE = {
     ("README.md", "Python API"):
@@ -147,6 +149,56 @@ def test_frames_and_landmarks_block_tracks_the_packaged_clip_anywhere(tmp_path, 
     assert scope["first"].shape == (3, 288, 360) and scope["points"].shape == (68, 2)
     assert result.ypr_deg.shape == (1, 3) and result.success.tolist() == [True]
     assert tracker.state.frame_index == 75
+
+
+def test_videos_of_different_lengths_block_tracks_each_video_to_its_end():
+    """docs/python-api.md's block of videos of different lengths in one batch (session 63's Python-API audit: the
+    page said to drop ended streams with ``select`` but not how to keep which video each stream is), run as written
+    on the packaged GRID clip's first 6 frames and first 3: each video gets a pose per frame, and the shorter one's are
+    the longer one's first 3 (the same frames, tracked in a batch and then alone, to rounding)."""
+    from torchface.io import open_frames, read_landmarks
+    from torchface.job import demo_inputs
+
+    video, landmarks_file = demo_inputs()
+    with open_frames(video) as reader:
+        frames = torch.stack([frame for _, frame in zip(range(6), reader)])
+        points = torch.from_numpy(read_landmarks(landmarks_file, reader.info.width, reader.info.height))
+    scope = {"clip_a": frames, "clip_b": frames[:3], "landmarks": torch.stack([points, points])}
+    exec(compile(_block("docs/python-api.md", "Streams, and failed starts"), "docs/python-api.md", "exec"), scope)
+    ypr, live = scope["ypr"], scope["live"]
+    assert [len(ypr[0]), len(ypr[1])] == [6, 3] and live == [0] and scope["result"].ypr_deg.shape == (1, 3)
+    assert all(p.shape == (3,) for p in ypr[0] + ypr[1])
+    torch.testing.assert_close(torch.stack(ypr[1]), torch.stack(ypr[0][:3]), atol=1e-3, rtol=0)
+
+
+def test_the_result_fields_the_python_api_page_describes_are_the_codes_names_and_angles_the_code_gives():
+    """docs/python-api.md's "Results and settings" says what a result's fields mean (session 63's Python-API audit:
+    the page named ``ypr_deg`` and ``status`` without their order, signs or codes, which only the CSV's columns in
+    the README and ``torchface/conventions.py`` held): its ``TrackStatus`` codes are the enum's, its Euler order and
+    signs are ``euler_to_matrix``'s (a nose, ``-z`` in the head frame, and the top of the head, ``-y``, seen in the
+    image), and the names it quotes are CANDIDE-3's."""
+    from torchface.geometry.so3 import euler_to_matrix
+    from torchface.model import load_candide3
+    from torchface.tracker import TrackStatus
+
+    section = PAGES["docs/python-api.md"].split("\n## Results and settings\n", 1)[1].split("\n## ", 1)[0]
+    text = " ".join(section.split())
+    codes = re.search(r"`status` `\(B,\)` holds `torchface.tracker.TrackStatus` codes: (.*?); `result.success`", text)
+    assert codes is not None
+    quoted = {name: int(value) for name, value in re.findall(r"`([A-Z_]+)` (\d+)", codes.group(1))}
+    assert quoted == {m.name: int(m) for m in TrackStatus}
+    assert "`R = R_y(yaw) R_x(pitch) R_z(roll)`" in text
+    R = euler_to_matrix(torch.tensor([[20.0, 0, 0], [0, 20.0, 0], [0, 0, 20.0]], dtype=torch.float64))
+    nose, top = torch.tensor([0, 0, -1.0], dtype=torch.float64), torch.tensor([0, -1.0, 0], dtype=torch.float64)
+    assert "+yaw turns the nose to image left" in text and float((R[0] @ nose)[0]) < 0  # x: image right
+    assert "+pitch tips it down" in text and float((R[1] @ nose)[1]) > 0  # y: image down
+    assert "+roll turns the face clockwise in the image" in text and float((R[2] @ top)[0]) > 0  # the top to the right
+    torch.testing.assert_close(R[2], euler_to_matrix(torch.tensor([0, 0, 20.0], dtype=torch.float64)))
+    model = load_candide3()
+    for name in re.findall(r"`'(AUV?\d+[^']*)'`", text):
+        assert name in model.animation_names + model.facs_names, name
+    assert model.num_animation == 11 and "CANDIDE-3's 11" in text
+    assert (model.facs_names[0], model.facs_names[-1]) == ("AU2", "AU45")
 
 
 def test_saving_a_model_block_runs_on_candide3_written_as_an_obj(tmp_path, monkeypatch):
