@@ -392,6 +392,26 @@ def test_nan_weight_is_refused_and_weight_zero_ignores_the_point(model):
     assert float(geodesic_angle_deg(fit.rotation, R[:1])) < 1e-4
 
 
+def test_more_than_eight_bad_points_are_listed_with_their_count(model):
+    """A message naming bad landmarks or weights lists at most 8; more were listed as the first 8 alone (session 63's
+    Python-API audit: weights all NaN read "got NaN for landmark(s) [0, 1, 2, 3, 4, 5, 6, 7]", as if 8 of 68 were
+    wrong). The list says how many there are, and stays as it was for 8 or fewer."""
+    R, t = poses()
+    lm = project_landmarks(model, R[:1], t[:1])
+    with pytest.raises(ValueError, match=r"^weights must be numbers >= 0, got NaN for landmark\(s\) "
+                                        r"\[0, 1, 2, 3, 4, 5, 6, 7, \.\.\.\] \(68 in all\): give"):  # fmt: skip
+        fit_landmarks(model, lm, CAM, torch.full((1, 68), float("nan"), dtype=D))
+    w = torch.ones(1, 68, dtype=D)
+    w[0, 60:] = -1.0
+    with pytest.raises(ValueError, match=r"for landmark\(s\) \[60, 61, 62, 63, 64, 65, 66, 67\]$"):
+        fit_landmarks(model, lm, CAM, w)
+    two = torch.cat([lm, lm])
+    two[:, :10, 0] = float("inf")
+    with pytest.raises(ValueError, match=r"^landmarks_px: landmark\(s\) \[0, 1, 2, 3, 4, 5, 6, 7, \.\.\.\] \(10 in "
+                                        r"all\) of stream 0 \(and in stream\(s\) \[1\]\) are infinite"):  # fmt: skip
+        fit_landmarks(model, two, CAM)
+
+
 def test_bad_inputs_raise(model):
     lm = torch.zeros(1, 68, 2, dtype=D)
     # (x, y, z) points, as 3D landmark detectors give them: told how to take their x and y

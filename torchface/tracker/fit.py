@@ -381,12 +381,16 @@ def _points_named(bad: Tensor) -> str:
     """``landmark(s) [3, 7]`` for the True entries of a ``(K,)`` or ``(B, K)`` bool mask (at most 8 listed), with
     ``of stream b`` and the other streams' numbers where a batch of more than one stream holds them."""
     bad = bad.detach().cpu()
+
+    def listed(indices: list[int]) -> str:  # (more than 8 were listed as the first 8 alone: all 68 read as 8)
+        return str(indices) if len(indices) <= 8 else f"{str(indices[:8])[:-1]}, ...] ({len(indices)} in all)"
+
     if bad.dim() < 2 or bad.shape[0] == 1:
-        return f"landmark(s) {bad.reshape(-1, bad.shape[-1]).any(0).nonzero().flatten().tolist()[:8]}"
+        return f"landmark(s) {listed(bad.reshape(-1, bad.shape[-1]).any(0).nonzero().flatten().tolist())}"
     flat = bad.reshape(-1, bad.shape[-1])
     streams = flat.any(-1).nonzero().flatten().tolist()
-    more = f" (and in stream(s) {streams[1:9]})" if len(streams) > 1 else ""
-    return f"landmark(s) {flat[streams[0]].nonzero().flatten().tolist()[:8]} of stream {streams[0]}{more}"
+    more = f" (and in stream(s) {listed(streams[1:])})" if len(streams) > 1 else ""
+    return f"landmark(s) {listed(flat[streams[0]].nonzero().flatten().tolist())} of stream {streams[0]}{more}"
 
 
 def landmark_rows_problem(landmarks_px: Tensor, *, weighted: bool = True) -> str | None:
