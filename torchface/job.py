@@ -181,7 +181,6 @@ from torchface.tracker.step import (
     StartFailure,
     TrackerConfig,
     TrackerState,
-    TrackResult,
     TrackStatus,
     pyramid_for_faces,
 )
@@ -3255,7 +3254,7 @@ def _track_group(
                     if any(live[k].error is not None for k in range(len(live)) if k not in keep):  # (a video stopped:
                         for s in live:  # the batch goes on smaller than the uninterrupted run's)
                             s.from_checkpoint = "split" if s.from_checkpoint else False
-                    state, result = state.select(keep), _select_result(result, keep)
+                    state, result = state.select(keep), result.select(keep)
                     smooth = None if smooth is None else smooth.select(keep)
                     first_R, first_t = first_R[keep], first_t[keep]
                     live[:] = [live[k] for k in keep]  # (in place: the recovery's callback reads this list)
@@ -3434,13 +3433,6 @@ def _keep_final(state: TrackerState, streams: list[_Stream], layout: ParamLayout
     for k in ks:
         streams[k].final_shape = state.shape_coeffs[k].tolist()
         streams[k].final_neutral = neutral[k].tolist()
-
-
-def _select_result(result: TrackResult, keep: list[int]) -> TrackResult:
-    """``result`` of the streams ``keep`` (rows, in order)."""
-    changes: dict[str, Any] = {f.name: v[keep] for f in fields(TrackResult)  # (replace checks a value against every
-                               if isinstance(v := getattr(result, f.name), Tensor)}  # field's type)  # fmt: skip
-    return replace(result, **changes)
 
 
 def _clear_earlier_outputs(out_dir: Path, names: Sequence[str]) -> None:

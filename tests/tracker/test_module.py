@@ -7,6 +7,7 @@ is tested there and in tests/tracker/test_managed.py.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import io
 import sys
 from pathlib import Path
@@ -136,6 +137,33 @@ def test_select_names_an_index_of_the_wrong_type(model, three_streams):
         with pytest.raises(TypeError, match="index must be stream indices"):
             before.select(bad)  # type: ignore[arg-type]
     assert tracker.state is before
+
+
+def test_result_select_is_each_fields_rows(model, three_streams):
+    """``TrackResult.select``: a result could not be split per stream (``result[0]``: a TypeError; the Python-API
+    audit of session 63), only field by field. Its rows are each tensor field's, in the order asked (a bool mask as its
+    indices, negative indices from the end); names and None fields as they are; bad indices refused as
+    ``TrackerState.select`` refuses them."""
+    frames, lm = three_streams
+    tracker = FaceTracker(CFG, model, refine_first=None)
+    tracker.initialise(frames[:, 0], lm)
+    result = tracker(frames[:, 1])
+    tensors = [f.name for f in dataclasses.fields(result) if isinstance(getattr(result, f.name), torch.Tensor)]
+    assert {"rotation", "ypr_deg", "expression", "facs", "status", "confidence"} <= set(tensors)
+    for index, rows in (([2, 0], [2, 0]), (torch.tensor([False, True, True]), [1, 2]), ([-1], [2]), ([], [])):
+        part = result.select(index)
+        for name in tensors:
+            assert torch.equal(getattr(part, name), getattr(result, name)[rows]), name
+        for f in dataclasses.fields(result):
+            if not isinstance(getattr(result, f.name), torch.Tensor):
+                assert getattr(part, f.name) == getattr(result, f.name), f.name
+    assert result.select([1]).success.shape == (1,) and result.select([1]).start_failure_reasons == (None,)
+    with pytest.raises(IndexError, match="out of range for 3 streams"):
+        result.select([3])
+    with pytest.raises(IndexError, match="must have 3 values"):
+        result.select(torch.tensor([True, False]))
+    with pytest.raises(TypeError, match="index must be stream indices"):
+        result.select(slice(0, 2))  # type: ignore[arg-type]
 
 
 # ----------------------------------------------------------------------------------------------- copies

@@ -510,6 +510,29 @@ def scale_floor(config: TrackerConfig, level: int) -> float:
     return fine * (coarse / fine) ** f
 
 
+def stream_index(index: Sequence[int] | Tensor, batch: int, device: torch.device) -> Tensor:
+    """``index``, stream indices (a list or integer tensor, negative ones from the end) or a ``(batch,)`` bool mask,
+    as an int64 ``(B',)`` tensor of indices in ``[0, batch)`` on ``device`` (:meth:`TrackerState.select`,
+    :meth:`TrackResult.select`); a ``TypeError`` or ``IndexError`` naming what is wrong otherwise."""
+    B = batch
+    # An empty list is no streams (torch.as_tensor([]) is float32: "stream indices must be integers").
+    empty = isinstance(index, (list, tuple)) and not index
+    if index is None or isinstance(index, (str, bytes, slice)):  # torch's "Could not infer dtype of NoneType"
+        raise TypeError(f"index must be stream indices (a list or int64 tensor) or a ({B},) bool mask, "
+                        f"got {type(index).__name__}")  # fmt: skip
+    index = torch.as_tensor(index, device=device, dtype=torch.int64 if empty else None).reshape(-1)
+    if index.dtype == torch.bool:  # a mask of the streams kept
+        if index.numel() != B:
+            raise IndexError(f"a stream mask must have {B} values (one per stream), got {index.numel()}")
+        index = index.nonzero().squeeze(-1)
+    elif index.is_floating_point() or index.is_complex():
+        raise TypeError(f"stream indices must be integers, got {index.dtype}")
+    index = index.to(torch.int64)
+    if index.numel() and (int(index.min()) < -B or int(index.max()) >= B):
+        raise IndexError(f"stream index out of range for {B} streams: {index.tolist()}")
+    return index % B if B else index
+
+
 @dataclass(frozen=True, eq=False)
 class TrackResult:
     """What one step reports per stream (see :mod:`torchface.conventions` for frames and units).
@@ -625,6 +648,21 @@ class TrackResult:
         """``self.to("cpu")``: a copy with every tensor on the CPU."""
         return self.to("cpu")
 
+    def select(self, index: Sequence[int] | Tensor) -> "TrackResult":
+        """The result of streams ``index`` (``(B',)`` stream indices, int64 or a list, in the order wanted; or a
+        ``(B,)`` bool mask), as :meth:`TrackerState.select` takes them: every per-stream tensor's rows, the names and
+        the fields that are None as they are. ``result.select([b])`` is stream ``b``'s result as a batch of one
+        (``result[b]`` is not defined: a result holds one tensor per field).
+
+        Example:
+            >>> result.select([1]).ypr_deg.shape                                # doctest: +SKIP
+            torch.Size([1, 3])
+        """
+        from torchface.normalise.face import apply_to_tensor_fields
+
+        index = stream_index(index, int(self.status.shape[0]), self.status.device)
+        return apply_to_tensor_fields(lambda t: t[index], self)
+
     @property
     def success(self) -> Tensor:
         """``(B,)`` bool: the estimate is usable (neither FAILED nor LOST).
@@ -723,24 +761,7 @@ class TrackerState:
             >>> state = state.select([0, 2])                                      # doctest: +SKIP
             >>> state, result = managed_step(model, config, state, frames[[0, 2]])  # doctest: +SKIP
         """
-        device = self.params.device
-        B = self.params.shape[0]
-        # An empty list is no streams (torch.as_tensor([]) is float32: "stream indices must be integers").
-        empty = isinstance(index, (list, tuple)) and not index
-        if index is None or isinstance(index, (str, bytes, slice)):  # torch's "Could not infer dtype of NoneType"
-            raise TypeError(f"index must be stream indices (a list or int64 tensor) or a ({B},) bool mask, "
-                            f"got {type(index).__name__}")  # fmt: skip
-        index = torch.as_tensor(index, device=device, dtype=torch.int64 if empty else None).reshape(-1)
-        if index.dtype == torch.bool:  # a mask of the streams kept
-            if index.numel() != B:
-                raise IndexError(f"a stream mask must have {B} values (one per stream), got {index.numel()}")
-            index = index.nonzero().squeeze(-1)
-        elif index.is_floating_point() or index.is_complex():
-            raise TypeError(f"stream indices must be integers, got {index.dtype}")
-        index = index.to(torch.int64)
-        if index.numel() and (int(index.min()) < -B or int(index.max()) >= B):
-            raise IndexError(f"stream index out of range for {B} streams: {index.tolist()}")
-        index = index % B if B else index
+        index = stream_index(index, self.params.shape[0], self.params.device)
         with torch.inference_mode(False):
             params = self.params[index]
             templates = tuple(t.select(index) for t in self.templates)
