@@ -1031,11 +1031,12 @@ def test_clean_frame_rule_settings_are_validated():
 
 
 def test_native_decisions_equal_the_torch_codes(model, turns, leaves, monkeypatch):
-    """The per-frame decisions made by the native kernels (entry selection, clean radius, gating, losses,
-    recovery schedule, new entries; ``torchface/_native/management.h``) are the torch code's: the same tracks,
-    statuses, entries and counters, frame by frame, on turns that grow the mosaic and on a face that leaves the
-    frame and comes back (lost, recovery attempts)."""
+    """The per-frame decisions made by the native kernels (entry selection, clean radius, the solve's clean-frame
+    rule, gating, losses, recovery schedule, new entries; ``torchface/_native/management.h``) are the torch code's:
+    the same tracks, statuses, entries and counters, frame by frame, on turns that grow the mosaic and on a face
+    that leaves the frame and comes back (lost, recovery attempts)."""
     import torchface.tracker.managed as managed_module
+    import torchface.tracker.step as step_module
     from torchface import _native
 
     if _native.library() is None:
@@ -1043,12 +1044,14 @@ def test_native_decisions_equal_the_torch_codes(model, turns, leaves, monkeypatc
     real = managed_module.use_native
 
     def torch_decisions(backend, tensors, what, *args, **kwargs):
-        return False if what == "template management" else real(backend, tensors, what, *args, **kwargs)
+        return False if what in ("template management", "clean-frame rule") else real(backend, tensors, what, *args,
+                                                                                      **kwargs)  # fmt: skip
 
     for (frames, gt), config in ((turns, replace(CFG, template=TemplateConfig(reference_radius_deg=10.0))),
                                  (leaves, LEAVE_CFG)):  # fmt: skip
         native = track(model, config, frames, landmarks(gt))
         monkeypatch.setattr(managed_module, "use_native", torch_decisions)
+        monkeypatch.setattr(step_module, "use_native", torch_decisions)
         reference = track(model, config, frames, landmarks(gt))
         monkeypatch.undo()
         for a, b in zip(native[0], reference[0]):

@@ -989,6 +989,69 @@ def test_clean_frame_rule_huber_at_the_finest_level_near_the_template_only(model
     assert isinstance(kept, RobustLoss) and kept.kind is RobustKind.TUKEY
 
 
+@pytest.mark.parametrize("default", [torch.float32, torch.float64])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_native_clean_rule_equals_the_torch_code(dtype, default):
+    """The solve's clean-frame rule by the native kernel (``management.h``'s ``tf_clean_streams``) decides as the
+    torch code does (:func:`~torchface.tracker.fast.robust_scale_of`'s scale, then ``_clean_streams``), stream by
+    stream: residuals around Tukey's rejection threshold (a few ulps either side of ``c`` scales), rejected shares
+    at and around ``clean_rejected_fraction`` (1 of 100: not below it), NaN and infinite residuals at valid points, a
+    stream without a valid point, one whose residuals are all NaN, a scale at its floor, streams not near; in the
+    residuals' dtype and torch's default dtype (the rejected share's)."""
+    import torchface.tracker.step as step
+    from torchface.solver.robust import RobustLoss
+    from torchface.tracker.fast import robust_scale_of
+
+    if _native.library() is None:
+        pytest.skip(f"native kernels unavailable: {_native.unavailable_reason()}")
+    previous = torch.get_default_dtype()
+    torch.set_default_dtype(default)
+    try:
+        gen = torch.Generator().manual_seed(3)
+        config = BASE
+        robust = RobustLoss(RobustKind.TUKEY, config.robust_c)
+        c, rows = float(robust.c), []
+        for rejected in range(4):  # 100 valid residuals of median 1 (scale 1.4826), `rejected` of them far out
+            r = torch.linspace(-1.0, 1.0, 100, dtype=torch.float64)
+            r[:rejected] = 50.0
+            rows.append((r, torch.ones(100, dtype=torch.bool)))
+        for k in range(-3, 4):  # residuals `k` ulps from c times the scale
+            r = torch.rand(100, generator=gen, dtype=torch.float64) * 2 - 1
+            r[50] = 0.0
+            r = r.to(dtype)
+            s = robust_scale_of(r[None], torch.ones(1, 100, dtype=torch.bool), 1e-3)[0, 0]
+            edge = (torch.tensor(c, dtype=dtype) * s).clone()
+            for _ in range(abs(k)):
+                edge = torch.nextafter(edge, torch.tensor(float("inf") if k > 0 else 0.0, dtype=dtype))
+            r[:2] = edge
+            rows.append((r.double(), torch.ones(100, dtype=torch.bool)))
+        r = torch.randn(100, generator=gen, dtype=torch.float64) * 5
+        r[[3, 7]] = float("nan")
+        r[[11]] = float("inf")
+        r[[12]] = -float("inf")
+        rows.append((r, torch.rand(100, generator=gen) > 0.2))
+        rows.append((torch.randn(100, generator=gen, dtype=torch.float64), torch.zeros(100, dtype=torch.bool)))
+        rows.append((torch.full((100,), float("nan"), dtype=torch.float64), torch.ones(100, dtype=torch.bool)))
+        rows.append((torch.full((100,), 1e-9, dtype=torch.float64), torch.ones(100, dtype=torch.bool)))  # at the floor
+        r = torch.stack([x for x, _ in rows]).to(dtype)
+        valid = torch.stack([v for _, v in rows])
+        near = torch.ones(r.shape[0], dtype=torch.bool)
+        near[[12, 14]] = False  # (rows that would be clean)
+        for floor in (1e-3, 0.05):
+            want = step._clean_streams(config, near, robust, r, valid, robust_scale_of(r, valid, floor))
+            got = step._native_clean_streams(config, near, robust, r, valid, floor)
+            assert got is not None and got.shape == want.shape and got.dtype == torch.bool
+            assert torch.equal(got, want), (got.flatten().tolist(), want.flatten().tolist())
+        assert want.flatten()[:4].tolist() == [True, False, False, False]  # 1 rejected of 100 is not below 1 %
+        assert want.flatten()[4:11].tolist() == [True] * 6 + [False]  # rejected 3 ulps above c scales (not 2: r / s)
+        # the torch code where the kernel cannot run: gradients asked for, the TORCH backend
+        assert step._native_clean_streams(config, near, robust, r.requires_grad_(), valid, 1e-3) is None
+        torch_config = replace(config, backend=Backend.TORCH)
+        assert step._native_clean_streams(torch_config, near, robust, r.detach(), valid, 1e-3) is None
+    finally:
+        torch.set_default_dtype(previous)
+
+
 # ----------------------------------------------------------------------------- pyramid windows
 @pytest.mark.parametrize("channels", [3, 1])
 def test_gray_crop_pyramid_in_chunks_equals_the_whole_batch(channels, monkeypatch):

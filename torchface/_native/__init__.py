@@ -60,15 +60,15 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 __all__ = ["library", "unavailable_reason", "run", "run_chunks", "LevelProblem", "LKProblem", "FaceProblem",
-           "ConfProblem", "CoverProblem", "CoeffProblem", "SelectProblem", "ManageProblem", "TemplateProblem",
-           "PickProblem", "PyramidProblem", "VisibleProblem", "LOSS_CODES"]
+           "ConfProblem", "CoverProblem", "CoeffProblem", "SelectProblem", "ManageProblem", "CleanProblem",
+           "TemplateProblem", "PickProblem", "PyramidProblem", "VisibleProblem", "LOSS_CODES"]
 
 _SOURCE_DIR = Path(__file__).resolve().parent
 _SOURCES = ("kernels.c", "level_solver.h", "dissimilarity.h", "normalised_face.h", "confidence.h", "coverage.h",
             "select_pixels.h", "management.h", "template_at.h", "top_pixels.h", "gray_pyramid.h",
             "visible.h")
 #: The library's ABI version (``tf_abi_version``); a cached build of another version is not used.
-_ABI_VERSION = 18
+_ABI_VERSION = 19
 _FLAGS = ("-O3", "-ffp-contract=off", "-fPIC", "-shared", "-std=c11")
 #: Tried first, then left out if the compiler refuses it.
 _ARCH_FLAGS = ("-march=native",)
@@ -203,6 +203,16 @@ class ManageProblem(ctypes.Structure):
             "very_low_count", "since", "out_entry", "out_near", "out_confident", "out_low_count",
             "out_very_low_count", "out_lost", "out_reverted", "out_since", "out_attempt", "out_bins", "out_add",
         )),  # fmt: skip
+    ]
+
+
+class CleanProblem(ctypes.Structure):
+    """``TFCleanProblem`` of ``kernels.c`` (same field order): the solve's clean-frame rule (see ``management.h``)."""
+
+    _fields_ = [
+        *((name, ctypes.c_int) for name in ("B", "N", "share_double")),
+        *((name, ctypes.c_double) for name in ("scale_floor", "min_scale", "c", "fraction")),
+        *((name, ctypes.c_void_p) for name in ("r", "valid", "near", "out_clean")),
     ]
 
 

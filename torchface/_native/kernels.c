@@ -141,6 +141,15 @@ typedef struct {
     uint8_t *out_add;
 } TFManageProblem;
 
+/* Mirrored by torchface._native.CleanProblem (ctypes): keep the two in the same order; see management.h. */
+typedef struct {
+    int B, N, share_double;
+    double scale_floor, min_scale, c, fraction;
+    const void *r;
+    const uint8_t *valid, *near;
+    uint8_t *out_clean;
+} TFCleanProblem;
+
 /* Mirrored by torchface._native.TemplateProblem (ctypes): keep the two in the same order; see template_at.h. */
 typedef struct {
     int B, V, A, N;
@@ -200,7 +209,7 @@ typedef struct {
 static _Thread_local void *tf_workspace = NULL;
 static _Thread_local size_t tf_workspace_size = 0;
 
-int tf_abi_version(void) { return 18; }
+int tf_abi_version(void) { return 19; }
 
 /* A kernel's streams on OpenMP's threads (at most threads of them), where built with -fopenmp: the runtime torch's
  * own threads use (torchface._native.run_chunks). The streams go in chunks of about batch / (8 threads) (at least

@@ -2,7 +2,8 @@
  * the torch code's rules: the mosaic entry to align against (template.management.select_entries) and whether the
  * pose is near that entry's (TemplateConfig.clean_radius_deg), before the solve; after it, the confidence gating
  * and loss counters, the recovery schedule and whether the frame becomes a mosaic entry (pose_bins, has_bin,
- * within_reach). The tests compare each against the torch code.
+ * within_reach); in the solve, the clean-frame rule (tracker.step._clean_streams). The tests compare each against
+ * the torch code.
  *
  * Included twice by kernels.c: REAL is float or double and FN(name) appends the dtype to a name.
  * Layouts: the mosaic's ypr (B, E, 3) degrees, bins (B, E, 2) int64, used (B, E) uint8; per stream (B,): ypr
@@ -96,5 +97,51 @@ int FN(tf_gate)(const TFManageProblem *p, int b0, int b1) {
                   entries < p->max_entries;
         p->out_add[b] = (uint8_t)add;
     }
+    return 0;
+}
+
+/* In the solve, after its coarser pose level, streams [b0, b1): the clean-frame rule of
+ * TemplateConfig.clean_radius_deg (tracker.step._clean_streams at fast.robust_scale_of's scale of the level's
+ * residuals r (B, N) over valid (B, N) uint8): a stream near its template's pose (near (B) uint8) is clean where
+ * Tukey's loss at that scale rejects (weight exactly 0) fewer than `fraction` of its valid residuals. The torch
+ * code's arithmetic, which the tests compare against: the scale is 1.4826 times the lower median of |r| over the
+ * valid residuals that are not NaN (1 without any; an infinite median is the dtype's largest value, as nan_to_num
+ * makes it), at least scale_floor, then at least min_scale (RobustLoss's floor on a scale); a residual is rejected
+ * where ((r / s)^2) / c^2 is at least 1 (Tukey's weight (1 - min(t, 1))^2 is 0 exactly there: below 1, 1 - t is at
+ * least half the dtype's epsilon, whose square is a normal number; NaN is never rejected); the rejected share in
+ * float, or double with share_double (the integer counts' division gives torch's default dtype), against the
+ * fraction in that dtype. out_clean (B) uint8. Returns 0, or -1 without memory. */
+int FN(tf_clean_streams)(const TFCleanProblem *p, int b0, int b1) {
+    const int N = p->N;
+    REAL *scratch = (REAL *)malloc(sizeof(REAL) * (N > 0 ? (size_t)N : 1));
+    if (!scratch) return -1;
+    const REAL cc = (REAL)(p->c * p->c), fl = (REAL)p->scale_floor, tiny = (REAL)p->min_scale;
+    const REAL largest = sizeof(REAL) == sizeof(float) ? (REAL)FLT_MAX : (REAL)DBL_MAX;
+    for (int b = b0; b < b1; ++b) {
+        const REAL *r = (const REAL *)p->r + (size_t)b * N;
+        const uint8_t *valid = p->valid + (size_t)b * N;
+        int k = 0;
+        int64_t count = 0, rejected = 0;
+        for (int n = 0; n < N; ++n) {
+            if (!valid[n]) continue;
+            ++count;
+            if (r[n] == r[n]) scratch[k++] = (REAL)fabs((double)r[n]);
+        }
+        REAL med = k > 0 ? FN(select_kth)(scratch, k, (k - 1) / 2) : (REAL)1;
+        med = med < largest ? med : largest;
+        REAL s = (REAL)TF_MAD_TO_SIGMA * med; /* in REAL, as the torch code's product */
+        s = s > fl ? s : fl;
+        s = s > tiny ? s : tiny;
+        for (int n = 0; n < N; ++n) {
+            if (!valid[n]) continue;
+            const REAL u = r[n] / s;
+            rejected += (u * u) / cc >= (REAL)1;
+        }
+        const int64_t total = count > 0 ? count : 1;
+        const int clean = p->share_double ? (double)rejected / (double)total < p->fraction
+                                          : (float)rejected / (float)total < (float)p->fraction;
+        p->out_clean[b] = (uint8_t)(p->near[b] && clean);
+    }
+    free(scratch);
     return 0;
 }

@@ -48,6 +48,7 @@ Shapes: ``B`` streams, ``E`` mosaic entries, ``N`` template points, ``S`` shape 
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field, fields
 
@@ -69,9 +70,10 @@ from torchface.template.dissimilarity import (
     DissimilarityConfig,
     DissimilarityReference,
     DissimilarityResult,
+    _gaussian_kernels,
     dissimilarity,
 )
-from torchface.template.points import Template, TemplatePixels, template_at
+from torchface.template.points import Template, TemplatePixels, _of_dtype, template_at
 
 __all__ = [
     "TemplateConfig",
@@ -669,7 +671,7 @@ def _add_entries(
         storage = [x.clone() for x in storage]
         claimed = mosaic.used.clone()
     for x, v in zip(storage, values):
-        x[streams, slot] = v.to(x.dtype)
+        x[streams, slot] = _of_dtype(v, x.dtype)
     claimed[streams, slot] = True
     parts = iter(storage)
     levels = tuple(MosaicLevel(*(next(parts) for _ in names)) for _ in mosaic.levels)
@@ -813,6 +815,17 @@ def _native_layout_constants(model: FaceModel, layout: NormalisedFaceLayout, dty
     return cache[dtype]
 
 
+@functools.lru_cache(maxsize=16)
+def _flat_kernel(sigma: float, dtype: torch.dtype) -> Tensor:
+    """The native confidence's smoothing kernel on the CPU: :func:`~torchface.template.dissimilarity._gaussian_kernels`'
+    1D Gaussian of ``sigma`` as a contiguous ``(k,)`` tensor (``(1,)`` ones without smoothing, ``sigma <= 0``): a
+    cached constant, made outside inference mode (it was a reshape of the cached kernel at every call)."""
+    with torch.inference_mode(False):
+        if sigma <= 0:
+            return torch.ones(1, dtype=dtype)
+        return _gaussian_kernels(sigma, dtype, torch.device("cpu"))[0].reshape(-1).contiguous()
+
+
 def native_mosaic_confidence(
     frames: Tensor, model: FaceModel, layout: NormalisedFaceLayout, mosaic: "Mosaic", rows: Tensor,
     ypr_deg: Tensor | None, shape_coeffs: Tensor, anim_coeffs: Tensor, rotation: Tensor, translation: Tensor,
@@ -835,7 +848,6 @@ def native_mosaic_confidence(
         (:func:`~torchface.backend.use_native`; a reference without precomputed patches counts as unsuitable).
     """
     from torchface import _native
-    from torchface.template.dissimilarity import _gaussian_kernels
 
     refs = mosaic.references
     lk = refs.lk
@@ -856,20 +868,22 @@ def native_mosaic_confidence(
     grid, template, sd, ref_weight, ref_total = (x.contiguous() for x in lk)
     E, K, n = grid.shape[1:4]
     sigma = float(dc.smoothing_sigma)
-    kernel = (_gaussian_kernels(sigma, dtype, frames.device)[0].reshape(-1) if sigma > 0
-              else torch.ones(1, dtype=dtype)).contiguous()  # fmt: skip
-    inputs = [x.contiguous() for x in (shape_coeffs.to(dtype), anim_coeffs, rotation, translation, frames, illumination,
-                                       rows, mosaic.ypr_deg.to(dtype), mosaic.used, refs.patch_valid)]  # fmt: skip
-    ypr = None if ypr_deg is None else ypr_deg.to(dtype).contiguous()
+    kernel = _flat_kernel(sigma, dtype)
+    inputs = [x.contiguous() for x in (_of_dtype(shape_coeffs, dtype), anim_coeffs, rotation, translation, frames,
+                                       illumination, rows, _of_dtype(mosaic.ypr_deg, dtype), mosaic.used,
+                                       refs.patch_valid)]  # fmt: skip
+    ypr = None if ypr_deg is None else _of_dtype(ypr_deg, dtype).contiguous()
     entry = torch.empty(B, dtype=torch.int64)
-    image = torch.zeros(B, C, G * G, dtype=dtype)
-    mask = torch.zeros(B, 1, G * G, dtype=dtype)
+    image = torch.zeros(B, C, G, G, dtype=dtype)  # (the kernel's (B, C, G * G) and (B, G * G), in the shapes returned)
+    mask = torch.zeros(B, 1, G, G, dtype=dtype)
     p = torch.empty(B, K, 2, dtype=dtype)
     support = torch.empty(B, K, dtype=dtype)
     flags = torch.empty(3, B, K, dtype=torch.bool)  # converged, valid, present
     out = torch.empty(3, B, dtype=dtype)  # dissimilarity, confidence, inside
     dmax = dc.max_displacement
     ptr = [x.data_ptr() for x in inputs]
+    # the rows' addresses of the flags (bytes) and of out (``size`` bytes a value)
+    f, o, size = flags.data_ptr(), out.data_ptr(), out.element_size()
     prob = _native.ConfProblem(
         B=B, V=mean.shape[0], F=faces.shape[0], M=face_index.shape[0], C=C, G=G, height=H, width=W, K=K, n=n,
         radius=kernel.numel() // 2 if sigma > 0 else 0, iterations=dc.iterations,
@@ -887,12 +901,13 @@ def native_mosaic_confidence(
         mosaic_ypr=ptr[7], used=ptr[8], kernel=kernel.data_ptr(), patch_valid=ptr[9], grid=grid.data_ptr(),
         templ=template.data_ptr(), sd=sd.data_ptr(), ref_weight=ref_weight.data_ptr(),
         ref_total=ref_total.data_ptr(), out_entry=entry.data_ptr(), out_image=image.data_ptr(),
-        out_mask=mask.data_ptr(), out_p=p.data_ptr(), out_support=support.data_ptr(), out_converged=flags[0].data_ptr(),
-        out_valid=flags[1].data_ptr(), out_present=flags[2].data_ptr(), out_dissimilarity=out[0].data_ptr(),
-        out_confidence=out[1].data_ptr(), out_inside=out[2].data_ptr(),
+        out_mask=mask.data_ptr(), out_p=p.data_ptr(), out_support=support.data_ptr(), out_converged=f,
+        out_valid=f + B * K, out_present=f + 2 * B * K, out_dissimilarity=o, out_confidence=o + B * size,
+        out_inside=o + 2 * B * size,
     )  # fmt: skip
     _native.run("confidence", dtype == torch.float64, prob, B, torch.get_num_threads())
-    return out[0], out[1], out[2], (image.reshape(B, C, G, G), mask.reshape(B, 1, G, G)), entry
+    diss, conf, inside = out.unbind(0)  # (at once: a row taken by indexing is an operation of its own)
+    return diss, conf, inside, (image, mask), entry
 
 
 @dataclass(frozen=True, eq=False)

@@ -706,6 +706,12 @@ def _template_at_native(
     return tpl
 
 
+def _of_dtype(x: Tensor, dtype: torch.dtype) -> Tensor:
+    """``x.to(dtype)``, without the dispatched operation where ``x`` is of ``dtype`` already (``to`` returns it; a
+    no-op ``to`` still costs 2-4 microseconds: template management's native calls made seven of them a step)."""
+    return x if x.dtype == dtype else x.to(dtype)
+
+
 def _rows_writable(model: FaceModel, into: Template, dtype: torch.dtype) -> bool:
     """Whether :func:`_template_rows_native` can write into ``into``: it holds its point-last copies
     (:attr:`Template.point_last`) and its tensors are normal (not inference) tensors that do not require grad
@@ -739,8 +745,9 @@ def _template_rows_native(
     cached = into.__dict__["_point_last"]
     with torch.inference_mode(False):
         inputs = [x.contiguous() for x in (verts, vertex_normals_neutral, model.animation_units,
-                                           model.faces.to(torch.int64), pixels.face_index.to(torch.int64),
-                                           pixels.bary.to(dtype), rows.to(torch.int64))]  # fmt: skip
+                                           _of_dtype(model.faces, torch.int64),
+                                           _of_dtype(pixels.face_index, torch.int64), _of_dtype(pixels.bary, dtype),
+                                           _of_dtype(rows, torch.int64))]  # fmt: skip
         names = ("verts", "vertex_normals", "anim_units", "faces", "face_index", "bary", "out_rows")
         outs = ("out_points", "out_basis", "out_normals", "out_points_t", "out_normals_t", "out_basis_t")
         prob = _native.TemplateProblem(
@@ -754,7 +761,7 @@ def _template_rows_native(
         torch.autograd.graph.increment_version((into.points, into.basis, into.normals, *cached))
         for name in ("face_index", "bary", "intensity", "valid"):
             x = getattr(into, name)
-            x[rows] = getattr(pixels, name).to(x.dtype)
+            x[rows] = _of_dtype(getattr(pixels, name), x.dtype)
     new = Template(into.face_index, into.bary, into.points, into.basis, into.normals, into.intensity, into.valid)
     object.__setattr__(new, "_point_last", cached)
     return new

@@ -48,6 +48,7 @@ the streams concerned (the recovery search loops over its lost streams).
 
 from __future__ import annotations
 
+import functools
 import math
 import warnings
 from collections.abc import Callable
@@ -79,6 +80,7 @@ from torchface.template.management import (
     MosaicLevel,
     TemplateConfig,
     _map_reference,
+    _of_dtype,
     _reference_tensors,
     add_entries,
     entry_templates,
@@ -544,6 +546,14 @@ def _subset_state(state: TrackerState, index: Tensor, params: Tensor, templates:
     )
 
 
+@functools.lru_cache(maxsize=64)
+def _all_rows(count: int, device: torch.device) -> Tensor:
+    """``torch.arange(count)`` on ``device``, int64: a batch's rows of its mosaic, as :func:`_confidence` reads them
+    every step (only read: a cached constant, made outside inference mode)."""
+    with torch.inference_mode(False):
+        return torch.arange(count, device=device)
+
+
 def _confidence(
     model: FaceModel, config: TrackerConfig, ms: ManagementState, frames: Tensor, state: TrackerState,
     status: Tensor, index: Tensor | None = None, ypr_deg: Tensor | None = None, rotation: Tensor | None = None,
@@ -556,7 +566,7 @@ def _confidence(
     selects the streams of a sub-batch (the mosaic's rows); ``ypr_deg`` ``(B, 3)`` and ``rotation``
     ``(B, 3, 3)``: the estimate's yaw/pitch/roll and rotation matrix when known."""
     aa, t, alpha, light = _layout(model).split(state.params)
-    rows = torch.arange(state.params.shape[0], device=aa.device) if index is None else index
+    rows = _all_rows(state.params.shape[0], aa.device) if index is None else index
     ypr = None
     if ms.mosaic.capacity > 1:
         ypr = matrix_to_euler(axis_angle_to_matrix(aa)) if ypr_deg is None else ypr_deg
@@ -575,7 +585,8 @@ def _confidence(
         failed = failed | ms.unstarted[rows]
     if native is not None:
         native_diss, native_conf, inside, face, _ = native
-        return torch.where(failed, torch.zeros_like(native_conf), native_conf), native_diss, inside, face
+        # (in place: the kernel's own output; the same zeros as a torch.where, in one operation instead of two)
+        return native_conf.masked_fill_(failed, 0.0), native_diss, inside, face
     diss, face, verts_cam = _nearest_dissimilarity(model, config, ms, frames, rows, ypr, state.shape_coeffs, aa, R,
                                                    t, alpha, light, state.intrinsics)  # fmt: skip
     conf = torch.where(failed, torch.zeros_like(diss.confidence), diss.confidence)
@@ -1155,18 +1166,18 @@ def managed_step(
         entry, near = _native_select_entries(ms, ypr, tc)
     elif use_mosaic:
         entry = select_entries(ms.mosaic, ypr, ms.entry, tc.switch_margin_deg, tc.reference_radius_deg)
-    if use_mosaic:
+    # (one comparison where no stream changes entry, as in most steps: the list of those that do is three operations)
+    if use_mosaic and not torch.equal(entry, ms.entry):
         changed = (entry != ms.entry).nonzero().squeeze(-1)
-        if changed.numel():
-            written = None
-            if donate:  # straight into the state's templates where they allow it (_entry_templates_in_place)
-                written = _entry_templates_in_place(model, state.shape_coeffs[changed], ms.mosaic, changed,
-                                                    entry[changed], templates, config.backend)  # fmt: skip
-            if written is None:
-                sub = entry_templates(model, state.shape_coeffs[changed], ms.mosaic, changed, entry[changed],
-                                      config.backend)  # fmt: skip
-                written = _scatter_templates(templates, changed, sub, in_place=donate)
-            templates = written
+        written = None
+        if donate:  # straight into the state's templates where they allow it (_entry_templates_in_place)
+            written = _entry_templates_in_place(model, state.shape_coeffs[changed], ms.mosaic, changed,
+                                                entry[changed], templates, config.backend)  # fmt: skip
+        if written is None:
+            sub = entry_templates(model, state.shape_coeffs[changed], ms.mosaic, changed, entry[changed],
+                                  config.backend)  # fmt: skip
+            written = _scatter_templates(templates, changed, sub, in_place=donate)
+        templates = written
 
     # 2. The joint minimisation (Eq. 20) against those templates, then its dissimilarity confidence.
     # Lost streams (and, with TemplateConfig.conservative_when_unconfident, those whose last frame was not confident)
@@ -1179,8 +1190,10 @@ def managed_step(
     if tc.clean_radius_deg > 0 and near is None:
         rows = torch.arange(entry.shape[0], device=entry.device)
         near = (ms.mosaic.ypr_deg[rows, entry, :2] - ypr[:, :2]).norm(dim=-1) <= tc.clean_radius_deg
+    # (the state as it is where no stream changed entry: a replace of it took 6-9 us a step at one stream)
+    solving = state if templates is state.templates else replace(state, templates=templates)
     solved, result = track_checked_step(  # (track_step, without checking the inputs again)
-        model, config, replace(state, templates=templates), frames, conservative=conservative, near_template=near
+        model, config, solving, frames, conservative=conservative, near_template=near
     )
     # Where the caller asked for gradients (frames or parameters that require grad, with grad mode on), the
     # solver's estimates carry them, as track_step's do; template management is a decision layer and works on
@@ -1263,11 +1276,16 @@ def managed_step(
     # pose, which plausible_turn_deg's reach grows with (it had restarted there: James scan, landmark-noise draw 2,
     # 2-px grid, (15, 1): a right track 17-18 degrees from that pose held lost 27 frames longer). Nothing else reads
     # a lost stream's count: defaults unchanged.
-    low_count = torch.where(confident & lost, ms.low_count + 1, low_count)
+    # any_lost: one host read; where no stream is lost (most steps), what follows from a loss (the counts above, the
+    # reverted parameters, a recovery, the loss's attempts and depth scale, the status) is known without the dozen
+    # operations that compute it (each 2-4 microseconds at one stream): the same values.
+    any_lost = bool(lost.any())
+    if any_lost:
+        low_count = torch.where(confident & lost, ms.low_count + 1, low_count)
     # The next step starts from these parameters; while they are the solver's, their yaw/pitch/roll is the result's.
     params_ypr: Tensor | None  # None: not known (rows reverted to the confident parameters or adopted)
     params, params_ypr = solved.params, result.ypr_deg.clone()  # (a copy: the caller may modify the result's)
-    if bool(reverted.any()):
+    if any_lost and bool(reverted.any()):
         params, params_ypr = torch.where(reverted.unsqueeze(-1), ms.confident_params, solved.params), None
 
     # 4. Recovery of lost streams (rare; only the streams concerned). A stream that never started (its
@@ -1279,7 +1297,7 @@ def managed_step(
         since = torch.where(restart, torch.zeros_like(since), since)
     adopted_scale = ms.adopted_scale if ms.adopted_scale is not None else torch.ones_like(conf)
     unmatched, unmatched_face = ms.unmatched, ms.unmatched_face  # (None: no detector attempt has counted yet)
-    recovery = bool(attempt.any())
+    recovery = any_lost and bool(attempt.any())
     if recovery:
         index = attempt.nonzero().squeeze(-1)
         since = torch.where(attempt, torch.zeros_like(since), since)
@@ -1355,9 +1373,11 @@ def managed_step(
             very_low_count = torch.where(recovered, torch.zeros_like(very_low_count), very_low_count)
             confident = confident | recovered
 
-    confident = confident & ~lost
+    if any_lost:  # (a recovery only ends losses: with none lost above, none is now)
+        confident = confident & ~lost
     confident_params = torch.where(confident.unsqueeze(-1), params, ms.confident_params)
-    new_state = replace(solved, params=params, templates=templates)
+    # The new state is made once, at the end (with its management); what reads it before then (a new entry, the
+    # texture update: rare, or opt-in) gets it as it stands (each replace of a state took 6-9 us at one stream).
     mosaic = ms.mosaic
 
     # 5. Learning from confident frames: a new mosaic entry, optionally the texture.
@@ -1372,16 +1392,22 @@ def managed_step(
         if bool(add.any()):
             index = add.nonzero().squeeze(-1)
             faces = None if face is None else (face[0][index], face[1][index])
-            templates_new, reference_new = _new_entries(model, config, new_state, ms, frames, index, faces)
+            templates_new, reference_new = _new_entries(model, config, replace(solved, params=params,
+                                                        templates=templates), ms, frames, index, faces)  # fmt: skip
             mosaic, _ = add_entries(mosaic, index, templates_new, result.rotation[index], bins[index], reference_new,
                                     max_capacity=tc.max_entries)  # fmt: skip
-    ms = replace(ms, mosaic=mosaic, entry=entry)
     if tc.texture_update and bool(confident.any()):
-        templates, mosaic = _texture_update(model, config, new_state, ms, frames, confident)
-        new_state = replace(new_state, templates=templates)
+        # (the management as updated so far: only the texture update reads it; below, the new ManagementState is
+        # made from mosaic and entry themselves: a replace of its 19 fields took 15-18 us a step at one stream)
+        templates, mosaic = _texture_update(model, config, replace(solved, params=params, templates=templates),
+                                            replace(ms, mosaic=mosaic, entry=entry), frames, confident)  # fmt: skip
     attempts = torch.zeros_like(ms.low_count) if ms.attempts is None else ms.attempts
-    attempts = torch.where(lost, attempts + attempt, torch.zeros_like(attempts))  # in the current loss
-    adopted_scale = torch.where(lost, adopted_scale, torch.ones_like(adopted_scale))
+    if any_lost:
+        attempts = torch.where(lost, attempts + attempt, torch.zeros_like(attempts))  # in the current loss
+        adopted_scale = torch.where(lost, adopted_scale, torch.ones_like(adopted_scale))
+    else:  # (the zeros and ones those give where no stream is lost; the fresh ones made above stand as they are)
+        attempts = attempts if ms.attempts is None else torch.zeros_like(attempts)
+        adopted_scale = adopted_scale if ms.adopted_scale is None else torch.ones_like(adopted_scale)
     if unmatched is not None:
         unmatched = torch.where(lost, unmatched, torch.zeros_like(unmatched))  # in the current loss
         if not bool(unmatched.any()):
@@ -1403,12 +1429,12 @@ def managed_step(
         None if params_ypr is None else (params, params_ypr), ms.first, ms.head_rotation, ms.head_translation,
         attempts, adopted_scale, ms.unstarted, unmatched, unmatched_face, pose_now, steady,
     )
-    status = torch.where(lost, torch.full_like(result.status, _LOST), result.status)
+    status = torch.where(lost, torch.full_like(result.status, _LOST), result.status) if any_lost else result.status
     result = replace(
         result, status=status, confidence=conf, residual_confidence=result.confidence, dissimilarity=diss,
         mosaic_entry=entry.clone(),
     )  # fmt: skip
-    new_state = replace(new_state, management=ms)
+    new_state = replace(solved, params=params, templates=templates, management=ms)
     started = None
     if restart is not None and detector is not None and bool(restart.any()):  # (restart: only with a detector)
         new_state, result, started = _restart(model, config, new_state, result, frames, restart, detector)
@@ -1490,7 +1516,7 @@ def _native_select_entries(ms: ManagementState, ypr: Tensor, tc: TemplateConfig)
     m = ms.mosaic
     B, E = m.used.shape
     dtype = m.ypr_deg.dtype
-    inputs = [x.contiguous() for x in (m.ypr_deg, m.bins, m.used, ypr.to(dtype), ms.entry)]
+    inputs = [x.contiguous() for x in (m.ypr_deg, m.bins, m.used, _of_dtype(ypr, dtype), ms.entry)]
     entry = torch.empty(B, dtype=torch.int64)
     near = torch.empty(B, dtype=torch.bool) if tc.clean_radius_deg > 0 else None
     prob = _native.ManageProblem(
@@ -1512,11 +1538,13 @@ def _native_gate(
     m = ms.mosaic
     B, E = m.used.shape
     dtype = m.ypr_deg.dtype
-    inputs = [x.contiguous() for x in (m.ypr_deg, m.bins, m.used, ypr.to(dtype), conf.to(dtype), inside.to(dtype),
-                                       failed, ms.lost, ms.low_count, ms.very_low_count, ms.since_attempt)]  # fmt: skip
+    inputs = [x.contiguous() for x in (m.ypr_deg, m.bins, m.used, _of_dtype(ypr, dtype), _of_dtype(conf, dtype),
+                                       _of_dtype(inside, dtype), failed, ms.lost, ms.low_count, ms.very_low_count,
+                                       ms.since_attempt)]  # fmt: skip
     flags = torch.empty(5, B, dtype=torch.bool)  # confident, lost, reverted, attempt, add
     counts = torch.empty(3, B, dtype=torch.int64)  # low, very low, since
     bins = torch.empty(B, 2, dtype=torch.int64)
+    f, c = flags.data_ptr(), counts.data_ptr()  # (the rows' addresses: a bool is a byte, an int64 8)
     names = ("mosaic_ypr", "bins", "used", "ypr", "confidence", "inside", "failed", "lost", "low_count",
              "very_low_count", "since")  # fmt: skip
     prob = _native.ManageProblem(
@@ -1525,13 +1553,15 @@ def _native_gate(
         confidence_threshold=tc.confidence_threshold, very_low_confidence=tc.very_low_confidence,
         recover_confidence=tc.recover_confidence, yaw_bin_deg=tc.yaw_bin_deg, pitch_bin_deg=tc.pitch_bin_deg,
         bin_centre_fraction=tc.bin_centre_fraction, entry_reach=tc.entry_reach, add_confidence=tc.add_confidence,
-        **{n: x.data_ptr() for n, x in zip(names, inputs)}, out_confident=flags[0].data_ptr(),
-        out_low_count=counts[0].data_ptr(), out_very_low_count=counts[1].data_ptr(), out_lost=flags[1].data_ptr(),
-        out_reverted=flags[2].data_ptr(), out_since=counts[2].data_ptr(), out_attempt=flags[3].data_ptr(),
-        out_bins=bins.data_ptr(), out_add=flags[4].data_ptr(),
+        **{n: x.data_ptr() for n, x in zip(names, inputs)}, out_confident=f, out_low_count=c,
+        out_very_low_count=c + 8 * B, out_lost=f + B, out_reverted=f + 2 * B, out_since=c + 16 * B,
+        out_attempt=f + 3 * B, out_bins=bins.data_ptr(), out_add=f + 4 * B,
     )  # fmt: skip
     _native.run("gate", dtype == torch.float64, prob, B, 1)
-    return flags[0], counts[0], counts[1], flags[1], flags[2], counts[2], flags[3], flags[4], bins
+    # (each output a row of flags or counts, unbound at once: a row taken by indexing is an operation of its own)
+    confident, lost, reverted, attempt, add = flags.unbind(0)
+    low_count, very_low_count, since = counts.unbind(0)
+    return confident, low_count, very_low_count, lost, reverted, since, attempt, add, bins
 
 
 def _in_head_frame(result: TrackResult, ms: ManagementState) -> TrackResult:

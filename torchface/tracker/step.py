@@ -16,7 +16,7 @@ import threading
 import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, cast
 
 import torch
 from torch import Tensor
@@ -1576,6 +1576,31 @@ def _clean_streams(
     return (clean & near_template.to(clean.device)).unsqueeze(-1)
 
 
+def _native_clean_streams(
+    config: TrackerConfig, near_template: Tensor, robust: RobustLoss, r: Tensor, valid: Tensor, floor: float
+) -> Tensor | None:
+    """:func:`_clean_streams` at :func:`~torchface.tracker.fast.robust_scale_of`'s scale of ``r (B, N)`` over ``valid``
+    (floored at ``floor``), by the native kernel (``management.h``: the same arithmetic, so the same streams), or
+    None where it cannot run (:func:`~torchface.backend.use_native`; torch's default dtype not float32 or float64,
+    which the rejected share is computed in). The torch code's scale and count were about 25 operations, 40
+    microseconds a call at one stream alone and about 115 inside a step, in 40% of benchmark.py's managed steps."""
+    default = torch.get_default_dtype()
+    if (default not in (torch.float32, torch.float64) or not near_template.is_cpu
+            or not use_native(config.backend, (r,), "clean-frame rule")):  # fmt: skip
+        return None
+    B, N = r.shape
+    r, valid, near = r.contiguous(), valid.contiguous(), near_template.contiguous()  # (near: (B,) bool, checked)
+    clean = torch.empty(B, 1, dtype=torch.bool)
+    prob = _native.CleanProblem(
+        B=B, N=N, share_double=int(default == torch.float64), scale_floor=floor,
+        min_scale=torch.finfo(r.dtype).tiny ** 0.5, c=cast(float, robust.c),  # (_as_scale's floor; c: set, a float)
+        fraction=config.template.clean_rejected_fraction, r=r.data_ptr(), valid=valid.data_ptr(),
+        near=near.data_ptr(), out_clean=clean.data_ptr(),
+    )  # fmt: skip
+    _native.run("clean_streams", r.dtype == torch.float64, prob, B, torch.get_num_threads())
+    return clean
+
+
 def _finest_loss(robust: RobustLoss, clean: Tensor | None) -> RobustLoss | SwitchedRobustLoss:
     """The finest pose level's loss: Huber with ``robust``'s constant for the ``clean (B, 1)`` streams, ``robust``
     for the others (:attr:`~torchface.template.management.TemplateConfig.clean_radius_deg`); ``robust`` when
@@ -2033,8 +2058,11 @@ def _fast_step(
             backend=config.backend, workspace=workspace,
         )
         if level == 1 and robust is not None and near_template is not None and _clean_rule(config, near_template):
-            scale = robust_scale_of(out.residual, out.valid, scale_floor(config, level))  # as the level's IRLS
-            clean = _clean_streams(config, near_template, robust, out.residual, out.valid, scale)
+            floor = scale_floor(config, level)
+            clean = _native_clean_streams(config, near_template, robust, out.residual, out.valid, floor)
+            if clean is None:
+                scale = robust_scale_of(out.residual, out.valid, floor)  # as the level's IRLS
+                clean = _clean_streams(config, near_template, robust, out.residual, out.valid, scale)
     if refine:
         refine_prior: float | Tensor = config.expression_prior_precision
         if config.refine_prior_precision is not None:
