@@ -244,6 +244,15 @@ def test_docs_start_failure_block_runs_and_gives_what_it_states(clip):
     assert checked == 3
 
 
+def test_landmarks_at_one_point_are_told_that_no_face_is_nan_rows(clip):
+    """All-zero landmarks (a detector's "no face" written as zeros) failed as a fit that holds no pose, the reason
+    not saying that NaN rows are how a stream is given no face (the Python-API audit of session 63)."""
+    frames, lm = clip
+    first = FaceTracker(CFG).initialise(frames[:1], torch.zeros_like(lm)[None])
+    assert first.start_failure.tolist() == [int(StartFailure.NO_POSE)]
+    assert "NaN rows, not zeros" in first.start_failure_reasons[0]
+
+
 def test_start_failure_codes_and_words():
     """Every code but NONE has its words; the codes are the enum's ints (what ``start_failure`` holds)."""
     assert StartFailure.NONE.reason is None
