@@ -87,6 +87,15 @@ NORMALISED_LANDMARK_MAX_SPAN: float = 1.5
 #: spans about a pixel as well (and fails the fit, as it did before the check).
 NORMALISED_CHECK_MIN_SIDE: int = 8
 
+#: iBUG-68's left-right mirror: point ``k`` of a face is point ``IBUG68_MIRROR[k]`` of its mirror image (the jaw's
+#: 0-16 reversed, the brows' 17-26, the nose wings' 31-35, the eyes' 36-47 and the lips' 48-67 each with its
+#: partner; the nose bridge 27-30 and the midline points on themselves). :func:`torchface.io.mirror_landmarks`.
+IBUG68_MIRROR: tuple[int, ...] = (
+    *range(16, -1, -1), *range(26, 16, -1), *range(27, 31), *range(35, 30, -1), *range(45, 41, -1),
+    *range(47, 45, -1), *range(39, 35, -1), *range(41, 39, -1), *range(54, 47, -1), *range(59, 54, -1),
+    *range(64, 59, -1), *range(67, 64, -1),
+)  # fmt: skip
+
 #: Point counts of MediaPipe's face mesh (468 points; 478 with the irises' 10, FaceLandmarker's).
 MEDIAPIPE_MESH_POINT_COUNTS: tuple[int, ...] = (468, 478)
 

@@ -939,3 +939,82 @@ def test_every_layout_holds_a_face_models_count(tmp_path):
                                          r"0-25$"):  # fmt: skip
         read_landmarks(tmp_path / "ibug.csv", 640, 480, count=K)
     np.testing.assert_array_equal(read_landmarks(tmp_path / "ibug.csv", 640, 480), _points())  # (68: as before)
+
+
+# ----------------------------------------------------------------------------------------------- mirror_landmarks
+
+
+def test_mirror_landmarks_tracks_a_flipped_frame_as_the_mirrored_head():
+    """``mirror_landmarks``: there was no public way to give the landmarks of a flipped frame (a flip augmentation);
+    its x coordinates flipped alone are a mirrored face, which the landmark fit fails (NO_POSE; the Python-API audit
+    of session 63). A rendered head (yaw 12, pitch -6, roll 5 degrees) and its flipped frame, started from the
+    ground-truth landmarks and from their mirror: the flipped one's yaw and roll are the head's negated, its pitch
+    the same; the x coordinates flipped alone fail."""
+    import torch
+
+    from torchface.geometry.camera import Intrinsics
+    from torchface.geometry.so3 import euler_to_matrix
+    from torchface.io import mirror_landmarks
+    from torchface.model.candide import load_candide3
+    from torchface.synth.background import BackgroundSpec
+    from torchface.synth.scenarios import default_light
+    from torchface.synth.sequence import SequenceSpec, render_sequence
+    from torchface.tracker import FaceTracker, StartFailure, TrackerConfig
+
+    W, H, D = 200, 150, torch.float64
+    spec = SequenceSpec(
+        name="mirror", subject="candide3", intrinsics=Intrinsics.default(W, H),
+        rotation=euler_to_matrix(torch.tensor([[12.0, -6.0, 5.0]], dtype=D)),
+        translation=torch.tensor([[15.0, -8.0, 420.0]], dtype=D),
+        anim=torch.zeros(1, load_candide3().num_animation, dtype=D), light=default_light(1),
+        background=BackgroundSpec(seed=5),
+    )  # fmt: skip
+    frames, gt = render_sequence(spec)
+    frames, lm = frames.float(), gt.landmarks_px[:1].float()
+    flipped = frames.flip(-1)
+    config = TrackerConfig(num_levels=2, max_points=400, iterations=(6, 4))
+    plain = FaceTracker(config, refine_first=None).initialise(frames, lm)
+    mirrored = FaceTracker(config, refine_first=None).initialise(flipped, mirror_landmarks(lm, W))
+    assert bool(plain.success[0]) and bool(mirrored.success[0])
+    yaw, pitch, roll = plain.ypr_deg[0].tolist()
+    assert abs(yaw - 12.0) < 2.0 and abs(roll - 5.0) < 2.0  # (the landmark fit's: the scene is what it was)
+    torch.testing.assert_close(mirrored.ypr_deg[0], torch.tensor([-yaw, pitch, -roll]), rtol=0, atol=0.5)
+    x_only = torch.stack([(W - 1) - lm[..., 0], lm[..., 1]], -1)
+    failed = FaceTracker(config, refine_first=None).initialise(flipped, x_only)
+    assert failed.start_failure.tolist() == [int(StartFailure.NO_POSE)]
+
+
+def test_mirror_landmarks_keeps_type_and_gradient_and_refuses_what_it_cannot_mirror():
+    """Twice is the identity (to float rounding), a NaN row moves with its point, a tensor's gradient flows, a NumPy
+    array stays one of its dtype; other shapes, integer points and a width that is no positive int are refused."""
+    import torch
+
+    from torchface.conventions import IBUG68_MIRROR
+    from torchface.io import mirror_landmarks
+
+    assert sorted(IBUG68_MIRROR) == list(range(68))
+    assert all(IBUG68_MIRROR[IBUG68_MIRROR[k]] == k for k in range(68))
+    assert (IBUG68_MIRROR[0], IBUG68_MIRROR[36], IBUG68_MIRROR[48], IBUG68_MIRROR[8]) == (16, 45, 54, 8)
+    p = (torch.rand(3, 68, 2, dtype=torch.float64) * 150).requires_grad_()
+    with torch.no_grad():
+        p[1, 5] = float("nan")
+    q = mirror_landmarks(p, 160)
+    assert q.shape == (3, 68, 2) and q.dtype == torch.float64
+    assert torch.isnan(q[1, 11]).all() and int(torch.isnan(q).sum()) == 2
+    torch.testing.assert_close(q[0, 0], torch.stack([159 - p[0, 16, 0], p[0, 16, 1]]))
+    torch.testing.assert_close(mirror_landmarks(q, 160), p, equal_nan=True)
+    q[0].nansum().backward()
+    assert torch.equal(p.grad[0, :, 0], -torch.ones(68, dtype=torch.float64))
+    a = np.random.default_rng(0).random((68, 2)).astype(np.float32) * 100
+    b = mirror_landmarks(a, 100)
+    assert isinstance(b, np.ndarray) and b.dtype == np.float32 and b.shape == (68, 2)
+    np.testing.assert_allclose(mirror_landmarks(b, 100), a, rtol=0, atol=1e-5)
+    with pytest.raises(ValueError, match=r"\(\.\.\., 68, 2\)"):
+        mirror_landmarks(torch.zeros(5, 2), 100)
+    with pytest.raises(TypeError, match="floating"):
+        mirror_landmarks(np.zeros((68, 2), dtype=np.int64), 100)
+    for bad in (0, 99.5, True):
+        with pytest.raises(TypeError, match="positive int"):
+            mirror_landmarks(a, bad)  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match="tensor or NumPy array"):
+        mirror_landmarks(a.tolist(), 100)  # type: ignore[type-var]

@@ -2,7 +2,7 @@
 sidecar. Errors about user input are :class:`InputError` / :class:`OutputError` with one-line messages."""
 
 from torchface.io.errors import InputError, OutputError
-from torchface.io.landmarks import NUM_LANDMARKS, check_landmarks, read_landmarks
+from torchface.io.landmarks import NUM_LANDMARKS, check_landmarks, mirror_landmarks, read_landmarks
 from torchface.io.sidecar import package_versions, to_jsonable, write_json
 from torchface.io.table import TrackCsvWriter, openface_euler, read_track_csv, result_rows, track_columns
 from torchface.io.video import FrameReader, VideoInfo, frame_to_tensor, open_frames
@@ -16,6 +16,7 @@ __all__ = [
     "VideoInfo",
     "check_landmarks",
     "frame_to_tensor",
+    "mirror_landmarks",
     "open_frames",
     "openface_euler",
     "package_versions",

@@ -63,20 +63,27 @@ import os
 import re
 from decimal import MAX_EMAX, MIN_EMIN, Context, Decimal, DecimalException
 from pathlib import Path
+from typing import TYPE_CHECKING, TypeVar
 
 import numpy as np
 
 from torchface._words import counted
 from torchface.conventions import (
-    MEDIAPIPE_MESH_HINT, MEDIAPIPE_MESH_POINT_COUNTS, NORMALISED_CHECK_MIN_SIDE, NORMALISED_LANDMARK_MAX_SPAN,
+    IBUG68_MIRROR, MEDIAPIPE_MESH_HINT, MEDIAPIPE_MESH_POINT_COUNTS, NORMALISED_CHECK_MIN_SIDE, NORMALISED_LANDMARK_MAX_SPAN,
     NORMALISED_LANDMARK_RANGE,
 )
 from torchface.io.errors import InputError
 
-__all__ = ["NUM_LANDMARKS", "read_landmarks", "check_landmarks", "missing_points_problem"]
+__all__ = ["NUM_LANDMARKS", "read_landmarks", "check_landmarks", "missing_points_problem", "mirror_landmarks"]
 
 #: Points in the iBUG-68 scheme.
 NUM_LANDMARKS: int = 68
+
+if TYPE_CHECKING:
+    import torch
+
+#: Pixel points as a tensor or a NumPy array (:func:`mirror_landmarks` returns the type it is given).
+_Points = TypeVar("_Points", "torch.Tensor", np.ndarray)
 
 
 def _cells(line: str, decimal_comma: bool = False) -> list[str]:
@@ -641,6 +648,50 @@ def planar_layout_problem(values: np.ndarray, count: int = NUM_LANDMARKS) -> str
                 f"{count} iBUG points as a face, but read as all x then all y they do: pass points.reshape(2, "
                 f"{count}).T, or the ({count}, 2) points")
     return None
+
+
+def mirror_landmarks(landmarks_px: _Points, width: int) -> _Points:
+    """The iBUG-68 pixel landmarks of frames mirrored left-right (``frames.flip(-1)``: a flip augmentation), from
+    those of the frames: ``x -> width - 1 - x`` (pixel centres at integers, :mod:`torchface.conventions`) and each
+    point swapped with its mirror partner (:data:`~torchface.conventions.IBUG68_MIRROR`: the jaw's 0 <-> 16, the eyes'
+    outer corners 36 <-> 45, ...), so that they are iBUG-68's again, in its order. The x coordinates flipped alone
+    are a mirrored face, which the tracker's landmark fit fails (``StartFailure.NO_POSE``). A NaN row (a missing
+    point) moves with its point. The mirrored frames' camera is ``cx -> width - 1 - cx`` (the default intrinsics
+    are centred: the same); their head pose has yaw and roll negated.
+
+    Args:
+        landmarks_px: ``(..., 68, 2)`` pixel ``(x, y)``, a tensor (differentiable; device and dtype kept) or a NumPy
+            array (dtype kept, floating).
+        width: the frames' width in pixels.
+
+    Returns:
+        ``(..., 68, 2)`` of the same type; ``mirror_landmarks(mirror_landmarks(p, W), W)`` is ``p`` (to float
+        rounding).
+
+    Example:
+        >>> flipped = frames.flip(-1)                                         # doctest: +SKIP
+        >>> result = tracker.initialise(flipped, mirror_landmarks(landmarks, frames.shape[-1]))  # doctest: +SKIP
+    """
+    import torch
+
+    if isinstance(width, bool) or not isinstance(width, (int, np.integer)) or width < 1:
+        raise TypeError(f"width must be the frames' width in pixels, a positive int, got {width!r}")
+    if isinstance(landmarks_px, np.ndarray):
+        floating = bool(np.issubdtype(landmarks_px.dtype, np.floating))
+    elif isinstance(landmarks_px, torch.Tensor):
+        floating = landmarks_px.is_floating_point()
+    else:
+        raise TypeError(f"landmarks_px must be a tensor or NumPy array (..., 68, 2), got {type(landmarks_px).__name__}")
+    if tuple(landmarks_px.shape[-2:]) != (NUM_LANDMARKS, 2):
+        raise ValueError(f"landmarks_px must be (..., {NUM_LANDMARKS}, 2) iBUG-68 pixel points, got "
+                         f"{tuple(landmarks_px.shape)}")  # fmt: skip
+    if not floating:
+        raise TypeError(f"landmarks_px must be floating pixel coordinates, got {landmarks_px.dtype}")
+    points = landmarks_px[..., list(IBUG68_MIRROR), :]
+    x, y = (width - 1) - points[..., 0], points[..., 1]
+    if isinstance(points, np.ndarray):
+        return np.stack([x, y], axis=-1).astype(points.dtype, copy=False)
+    return torch.stack([x, y], dim=-1)
 
 
 def check_landmarks(

@@ -23,6 +23,7 @@ import torch
 
 from torchface._device import check_device
 from torchface._names import name_tuple
+from torchface.conventions import IBUG68_MIRROR
 from torchface.model.face_model import FaceModel, check_landmark_weights
 
 __all__ = ["load_mesh_model", "load_ict_face_model", "ICT_TO_HEAD", "ICT_MM_PER_UNIT", "ICT_AREAS", "ARKIT_TO_FACS"]
@@ -173,9 +174,8 @@ def _check_winding(vertices: np.ndarray, faces: np.ndarray) -> None:
         )
 
 
-#: iBUG-68's left-right mirror: point ``k`` of a face is point ``_IBUG_MIRROR[k]`` of its mirror image.
-_IBUG_MIRROR = np.r_[16:-1:-1, 26:16:-1, 27:31, 35:30:-1, 45:41:-1, 47:45:-1, 39:35:-1, 41:39:-1, 54:47:-1, 59:54:-1,
-                     64:59:-1, 67:64:-1]  # fmt: skip
+#: iBUG-68's left-right mirror (:data:`torchface.conventions.IBUG68_MIRROR`) as an index array.
+_IBUG_MIRROR = np.asarray(IBUG68_MIRROR)
 #: The point on the subject's right (head frame ``-x``) of each of iBUG-68's 29 left-right pairs (jaw, brows, nose
 #: wings, eyes, lips), at least 8.8 mm from its partner on CANDIDE-3 and 12 mm on the ICT Face Model.
 _IBUG_RIGHT = np.r_[0:8, 17:22, 31:33, 36:42, 48:51, 58:62, 67]

@@ -143,7 +143,7 @@ _START_FAILURE_REASONS: dict[StartFailure, str | None] = {
     StartFailure.NO_POSE: "the landmark fit holds no pose (landmarks at one point: a 'no face' is NaN rows, not "
                           "zeros; collinear, mirrored or seen from behind: a fit turned away, edge-on or behind "
                           "the camera; landmarks are (x, y) pixels, (row, col) ones give a mirrored face: "
-                          "landmarks.flip(-1))",
+                          "landmarks.flip(-1); a flipped frame's: torchface.io.mirror_landmarks)",
     StartFailure.FACE_TOO_SMALL: "the face is narrower than TrackerConfig.min_face_width_px",
     StartFailure.OUTSIDE_FRAME: "the fitted face, or its landmarks, lie mostly outside the frame "
                                 "(TemplateConfig.min_inside_fraction)",
