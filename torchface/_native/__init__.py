@@ -493,7 +493,7 @@ def _load() -> None:
                           ("tf_gate", ManageProblem), ("tf_template_at", TemplateProblem),
                           ("tf_top_pixels", TopProblem), ("tf_pick_pixels", PickProblem),
                           ("tf_gray_pyramid", PyramidProblem),
-                          ("tf_visible", VisibleProblem)):
+                          ("tf_visible", VisibleProblem), ("tf_clean_streams", CleanProblem)):
         for suffix in ("_f32", "_f64"):
             fn = getattr(lib, name + suffix)
             fn.argtypes = [ctypes.POINTER(problem), ctypes.c_int, ctypes.c_int]

@@ -783,13 +783,15 @@ def _check_detector_output(landmarks: object, count: int, k: int, width: int, he
     # (a per-image detector's answer, one image's (K, 2) array or None, and a batch's as NumPy were told the type
     # alone, at the first recovery attempt)
     per_image = (" (one image's answer? The detector is called with the (B, 3, H, W) frames of the streams it "
-                 "re-initialises; a per-image detector, image -> (68, 2) points or None: "
+                 f"re-initialises; a per-image detector, image -> ({k}, 2) points or None: "
                  "torchface.detect.batched(detector))")  # fmt: skip
     if not isinstance(landmarks, Tensor):
         shape = getattr(landmarks, "shape", None)
         hint = (per_image if landmarks is None or shape == (k, 2)
                 else " (a NumPy array: torch.from_numpy(landmarks))" if shape == (count, k, 2)
-                else " (a list: torch.stack of the streams' (K, 2) tensors)" if isinstance(landmarks, list) else "")
+                else (" (a list, one answer per stream: torch.stack([torch.as_tensor(x) for x in answers]), NaN "
+                      "rows for no face; or wrap a per-image detector in torchface.detect.batched(detector))")
+                if isinstance(landmarks, list) else "")  # fmt: skip
         raise TypeError(f"the detector must return a ({count}, {k}, 2) tensor of pixel landmarks (NaN rows: no "
                         f"face), got {type(landmarks).__name__}{hint}")  # fmt: skip
     if landmarks.dtype == torch.bool or landmarks.is_complex():

@@ -1590,6 +1590,8 @@ def _native_clean_streams(
             or not use_native(config.backend, (r,), "clean-frame rule")):  # fmt: skip
         return None
     B, N = r.shape
+    if N == 0:  # (no residuals: the torch code's, whatever it does there; not met in a step, which has points)
+        return None
     r, valid, near = r.contiguous(), valid.contiguous(), near_template.contiguous()  # (near: (B,) bool, checked)
     clean = torch.empty(B, 1, dtype=torch.bool)
     prob = _native.CleanProblem(
