@@ -416,10 +416,11 @@ class VideoSummary:
             its last frame (the sidecar's ``timings_s.active``; the batch's whole loop, ``timings_s.track``, for the
             videos that ended last). The streams of one batch share that time: where its videos have one length
             and none was resumed the batch runs at the sum of their ``fps``; the batch's own rate is the sidecar's
-            ``timings_s.batch_fps`` (its frames over its loop's time). Resumed, its rows tracked again for the online start count as
-            tracked frames, the rows replayed from its CSV, only drawn, do not. skipped: True when ``resume``
-            found it complete (not tracked again; another sense than :class:`Progress`'s ``skipped``, an input
-            that ``keep_going`` could not track, whose summary has ``refused`` or ``stopped`` set).
+            ``timings_s.batch_fps`` (its frames over its loop's time). Resumed, its rows tracked again for the
+            online start count as tracked frames, the rows replayed from its CSV, only drawn, do not. skipped: True
+            when ``resume`` found it complete (not tracked again; another sense than :class:`Progress`'s
+            ``skipped``, an input that ``keep_going`` could not track, whose summary has ``refused`` or ``stopped``
+            set).
         declared_frames: the frame count the input declares (a video container's), when known and the frames
             decoded fell short of it (a truncated or damaged file); None otherwise.
         refused: with ``JobConfig.keep_going``, why the input was skipped without being tracked: the error that
