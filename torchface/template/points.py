@@ -708,7 +708,8 @@ def _template_at_native(
 
 def _of_dtype(x: Tensor, dtype: torch.dtype) -> Tensor:
     """``x.to(dtype)``, without the dispatched operation where ``x`` is of ``dtype`` already (``to`` returns it; a
-    no-op ``to`` still costs 2-4 microseconds: template management's native calls made seven of them a step)."""
+    no-op ``to`` still costs 2-4 microseconds: template management's native calls made seven of them a step; the
+    step's result codes, status and iterations, use it too)."""
     return x if x.dtype == dtype else x.to(dtype)
 
 

@@ -548,8 +548,8 @@ def _subset_state(state: TrackerState, index: Tensor, params: Tensor, templates:
 
 @functools.lru_cache(maxsize=64)
 def _all_rows(count: int, device: torch.device) -> Tensor:
-    """``torch.arange(count)`` on ``device``, int64: a batch's rows of its mosaic, as :func:`_confidence` reads them
-    every step (only read: a cached constant, made outside inference mode)."""
+    """``torch.arange(count)`` on ``device``, int64: a batch's rows of its mosaic, as :func:`_confidence` and the
+    clean radius's check read them every step (only read: a cached constant, made outside inference mode)."""
     with torch.inference_mode(False):
         return torch.arange(count, device=device)
 
@@ -1190,7 +1190,7 @@ def managed_step(
     # (TemplateConfig.clean_radius_deg).
     conservative = ms.lost | (ms.low_count > 0) if tc.conservative_when_unconfident else ms.lost
     if tc.clean_radius_deg > 0 and near is None:
-        rows = torch.arange(entry.shape[0], device=entry.device)
+        rows = _all_rows(entry.shape[0], entry.device)
         near = (ms.mosaic.ypr_deg[rows, entry, :2] - ypr[:, :2]).norm(dim=-1) <= tc.clean_radius_deg
     # (the state as it is where no stream changed entry: a replace of it took 6-9 us a step at one stream)
     solving = state if templates is state.templates else replace(state, templates=templates)

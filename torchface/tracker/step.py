@@ -43,7 +43,7 @@ from torchface.rendering.visibility import points_visible
 from torchface.solver.least_squares import SolveResult, SolverConfig, SolveStatus, least_squares
 from torchface.solver.robust import RobustKind, RobustLoss, SwitchedRobustLoss, robust_scale
 from torchface.template.management import TemplateConfig
-from torchface.template.points import Template, build_template
+from torchface.template.points import Template, _of_dtype, build_template
 from torchface.tracker.fast import FUNCTION_TOLERANCE, STEP_TOLERANCE, LevelCamera, robust_scale_of, solve_level
 from torchface.tracker.fit import (
     MIN_FIT_LANDMARKS, FitConfig, LandmarkFit, _landmark_width_mm, _weights_shape_hint, check_landmark_type,
@@ -1374,14 +1374,9 @@ def _result(
         rotation=R, axis_angle=aa, translation=t, ypr_deg=matrix_to_euler(R), anim_coeffs=alpha,
         anim_names=model.animation_names, expression=expression, facs=model.facs_values(expression),
         facs_names=model.facs_names,
-        illumination=light, illumination_names=ILLUMINATION_TERM_NAMES, status=_int64(status),
-        iterations=_int64(iterations), cost=cost, num_points=num_points, confidence=confidence,
+        illumination=light, illumination_names=ILLUMINATION_TERM_NAMES, status=_of_dtype(status, torch.int64),
+        iterations=_of_dtype(iterations, torch.int64), cost=cost, num_points=num_points, confidence=confidence,
     )
-
-
-def _int64(x: Tensor) -> Tensor:
-    """``x.to(torch.int64)``, without the dispatched operation where ``x`` is int64 already (``to`` returns it)."""
-    return x if x.dtype == torch.int64 else x.to(torch.int64)
 
 
 def step_grad_inputs(
