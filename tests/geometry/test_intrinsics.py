@@ -208,6 +208,42 @@ def test_a_principal_point_outside_the_frame_alone_is_a_crop_not_a_mix_up() -> N
     assert "are implausible" in str(mixed_up_intrinsics(Intrinsics(1, 1, 5e-324, 1.0, 0.5, 0.5)))
 
 
+def test_a_common_larger_frames_camera_of_another_shape_is_named_with_both_adaptations() -> None:
+    """A 1920x1080 calibration (or ``Intrinsics.default(1920, 1080)``) given unchanged for 640x480 frames was not
+    told: its principal point, that frame's centre, lies outside these frames, as a crop's camera's does, and the
+    same-shape rule (a larger frame's centre at one scale along x and y) does not read 3 and 2.25. A common frame
+    size's exact centre, with that frame's plausible focal lengths, is told with the cameras of its middle cut to
+    4:3 and of it squeezed; a crop's principal point that is no common frame's centre still is not."""
+    from torchface.geometry.camera import COMMON_FRAME_SIZES, mixed_up_intrinsics
+
+    assert (1920, 1080) in COMMON_FRAME_SIZES and (1280, 720) in COMMON_FRAME_SIZES
+    hint = mixed_up_intrinsics(Intrinsics(640, 480, 1920.0, 1920.0, 959.5, 539.5))  # (Intrinsics.default(1920, 1080))
+    assert hint is not None and "the camera of a 1920x1080 frame (its centre the principal point), not adapted to " \
+        "these frames of another shape? Cut from its middle and resized, they have Intrinsics(640, 480, fx=853.333, " \
+        "fy=853.333, cx=319.5, cy=239.5); resized whole (squeezed), Intrinsics(640, 480, fx=640, fy=853.333, " \
+        "cx=319.5, cy=239.5)" in hint, hint
+    # the middle cut's camera is the one a centred cut and resize make of the larger frame's (scaled() agrees)
+    cut = Intrinsics(1440, 1080, 1920.0, 1920.0, 959.5 - 240, 539.5).scaled(1 / 2.25)
+    assert (cut.width, cut.height, round(cut.fx, 3), cut.cx, cut.cy) == (640, 480, 853.333, 319.5, 239.5)
+    # the W / 2 convention's centre; a 1280x720 frame's, inside these frames (their right edge); portrait frames,
+    # whose squeezed camera (pixels 1.33 times taller than wide) is itself implausible and not offered
+    hint = str(mixed_up_intrinsics(Intrinsics(640, 480, 1800.0, 1800.0, 960.0, 540.0)))
+    assert "the camera of a 1920x1080 frame" in hint and "cx=319.722, cy=239.722" in hint, hint
+    hint = str(mixed_up_intrinsics(Intrinsics(640, 480, 1280.0, 1280.0, 639.5, 359.5)))
+    assert "the camera of a 1280x720 frame" in hint and "fx=853.333, fy=853.333, cx=319.5, cy=239.5" in hint, hint
+    hint = str(mixed_up_intrinsics(Intrinsics(480, 640, 1920.0, 1920.0, 539.5, 959.5)))
+    assert "the camera of a 1080x1920 frame" in hint and "Intrinsics(480, 640, fx=853.333, fy=853.333, cx=239.5, " \
+        "cy=319.5)" in hint and "squeezed" not in hint, hint
+    for cx, cy in ((959.5, 539.6), (1199.5, 539.5), (959.5 - 100, 539.5 - 100)):  # no common frame's exact centre
+        assert mixed_up_intrinsics(Intrinsics(640, 480, 1920.0, 1920.0, cx, cy)) is None, (cx, cy)
+    # under twice the size (a 720x480 frame's centre: 40 pixels right of these frames'), or focal lengths no camera
+    # of that frame has, are not told; the same shape is the unscaled rule's (test above)
+    assert mixed_up_intrinsics(Intrinsics(640, 480, 700.0, 700.0, 359.5, 239.5)) is None
+    assert "are implausible" in str(mixed_up_intrinsics(Intrinsics(640, 480, 1920.0, 1000.0, 959.5, 539.5)))
+    hint = str(mixed_up_intrinsics(Intrinsics(640, 360, 1280.0, 1280.0, 639.5, 359.5)))
+    assert "not scaled with these frames" in hint and "another shape" not in hint, hint
+
+
 def test_the_mixed_up_warning_pickles_and_copies_with_its_camera() -> None:
     """``MixedUpIntrinsics`` holds its camera beside the message (``args``: the message alone), so the default pickle
     called ``MixedUpIntrinsics(message)``, a TypeError: a warning raised as an error (``-W error``) in a

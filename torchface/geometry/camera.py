@@ -234,6 +234,46 @@ def _unscaled_hint(w: int, h: int, fx: float, fy: float, cx: float, cy: float, g
             "crop of a larger frame (its principal point) is right as given")
 
 
+#: Frame sizes ``(W, H)`` of video and photo cameras (landscape; portrait ones are these transposed) whose centred
+#: camera, given unchanged for frames of another shape (a 1920x1080 calibration, or ``Intrinsics.default(1920,
+#: 1080)``, for 640x480 frames), :func:`mixed_up_intrinsics` recognises by its principal point: exactly that frame's
+#: centre, ``((W - 1) / 2, (H - 1) / 2)`` or ``(W / 2, H / 2)``. A list, not any larger frame's centre: a crop's
+#: principal point is often a half-integer pair too (a centred camera's, less the crop's corner).
+COMMON_FRAME_SIZES: tuple[tuple[int, int], ...] = (
+    (640, 360), (640, 480), (720, 480), (720, 576), (800, 600), (854, 480), (960, 540), (960, 720), (1024, 576),
+    (1024, 768), (1280, 720), (1280, 960), (1280, 1024), (1440, 1080), (1600, 1200), (1920, 1080), (1920, 1200),
+    (1920, 1440), (2048, 1080), (2048, 1536), (2560, 1440), (2592, 1944), (2704, 1520), (2704, 2028), (3264, 2448),
+    (3840, 2160), (4000, 3000), (4032, 3024), (4096, 2160),
+)
+
+
+def _reshaped_hint(w: int, h: int, fx: float, fy: float, cx: float, cy: float, given: str) -> str | None:
+    """:func:`mixed_up_intrinsics`' hint where ``fx, fy, cx, cy`` look like the centred camera of a frame of
+    :data:`COMMON_FRAME_SIZES` of another shape than these ``w x h`` frames, at least twice as large along one side
+    and as large along the other, not adapted to them (:func:`_unscaled_hint` tells a larger frame of the same
+    shape): its principal point exactly that frame's centre and its focal lengths a plausible camera's of it. The
+    hint gives the two cameras such frames have: cut from the larger frame's middle to their shape, then resized
+    (square pixels), or resized to their size as a whole (squeezed: pixels of another shape, offered where those are
+    a plausible camera's); None otherwise."""
+    for big_w, big_h in COMMON_FRAME_SIZES + tuple((b, a) for a, b in COMMON_FRAME_SIZES):
+        if big_w * h == big_h * w or big_w < w or big_h < h or max(big_w / w, big_h / h) < 2:
+            continue  # (the same shape: _unscaled_hint's; smaller along a side, or under twice the size)
+        half = (big_w - 1) / 2, (big_h - 1) / 2
+        if ((cx, cy) == half or (cx, cy) == (big_w / 2, big_h / 2)) and _fits(big_w, big_h, fx, fy, cx, cy, True):
+            s = min(big_w / w, big_h / h)  # (the middle cut to these frames' shape, then resized by 1 / s)
+            x0, y0 = (big_w - s * w) / 2, (big_h - s * h) / 2
+            cut = (fx / s, fy / s, (cx + 0.5 - x0) / s - 0.5, (cy + 0.5 - y0) / s - 0.5)
+            squeezed = (fx * w / big_w, fy * h / big_h, (cx + 0.5) * w / big_w - 0.5, (cy + 0.5) * h / big_h - 0.5)
+            a, b = (", ".join(f"{n}={v:.6g}" for n, v in zip(("fx", "fy", "cx", "cy"), c)) for c in (cut, squeezed))
+            whole = (f"; resized whole (squeezed), Intrinsics({w}, {h}, {b})" if _focal_lengths_fit(w, h, *squeezed[:2])
+                     else "")  # (squeezed to tall pixels: itself implausible, not offered)
+            return (f"intrinsics {given} look like the camera of a {big_w}x{big_h} frame (its centre the principal "
+                    f"point), not adapted to these frames of another shape? Cut from its middle and resized, they "
+                    f"have Intrinsics({w}, {h}, {a}){whole}; the camera of a crop of a larger frame (its principal "
+                    "point) is right as given")
+    return None
+
+
 class MixedUpIntrinsics(UserWarning):
     """The warning :func:`~torchface.tracker.step.initialise` gives with :func:`mixed_up_intrinsics`' hint (a
     ``UserWarning``); ``intrinsics`` is the camera it is of, for a front end that speaks of its own options
@@ -268,7 +308,8 @@ def mixed_up_intrinsics(intrinsics: Intrinsics) -> str | None:
     - normalised intrinsics (``fx / W``, ``cx / W``: a focal length of about one pixel);
     - the camera of a frame at least twice as large, not scaled with the frames (its principal point the larger
       frame's centre: a calibration at 1920x1440 used for 640x480 frames, ``Intrinsics.default(3840, 2160)`` for
-      1920x1080 ones);
+      1920x1080 ones), or of a common frame size of another shape (:data:`COMMON_FRAME_SIZES`: a 1920x1080
+      calibration for 640x480 frames), with the cameras of its middle cut to the frames' shape and of it squeezed;
     - a principal point at ``(0, 0)``, the top-left pixel (a transposed ``K`` read, or a camera whose image
       coordinates are centred; torchface's pixel centres are at integers from the top-left, the centre at
       ``((W - 1) / 2, (H - 1) / 2)``), or at ``(W, H)``, the frame's size.
@@ -302,8 +343,9 @@ def mixed_up_intrinsics(intrinsics: Intrinsics) -> str | None:
         return (f"intrinsics {given} put the principal point at the top-left pixel: a transposed K read (K[0, 2], "
                 f"K[1, 2] are cx, cy), or a camera in centred coordinates? torchface's pixel centres are at integers "
                 f"from the top-left, a centred camera's principal point ({(w - 1) / 2:g}, {(h - 1) / 2:g})")
-    if _fits(w, h, fx, fy, cx, cy, tight=False):  # (but a 2x larger frame's centre: its bottom-right corner's edge)
-        return _unscaled_hint(w, h, fx, fy, cx, cy, given)
+    if _fits(w, h, fx, fy, cx, cy, tight=False):  # (but a 2x larger frame's centre: its bottom-right corner's edge;
+        # a 1280x720 frame's for 640x480 frames: their right edge)
+        return _unscaled_hint(w, h, fx, fy, cx, cy, given) or _reshaped_hint(w, h, fx, fy, cx, cy, given)
     if abs(cx - w) <= 1 and abs(cy - h) <= 1 and _focal_lengths_fit(w, h, fx, fy):
         return (f"intrinsics {given} put the principal point at ({w}, {h}), the frame's size: a centred camera's "
                 f"principal point is ({(w - 1) / 2:g}, {(h - 1) / 2:g}), pixel centres at integers from the top-left")
@@ -317,7 +359,7 @@ def mixed_up_intrinsics(intrinsics: Intrinsics) -> str | None:
         if min(a, b) > 0 and _fits(w, h, a, b, c, d, tight=True):
             return (f"intrinsics {given} look mixed up: {what} Likely meant: Intrinsics({w}, {h}, fx={a:g}, fy={b:g}, "
                     f"cx={c:g}, cy={d:g}), or Intrinsics.from_matrix(K, {w}, {h}) from a 3x3 calibration matrix")
-    unscaled = _unscaled_hint(w, h, fx, fy, cx, cy, given)
+    unscaled = _unscaled_hint(w, h, fx, fy, cx, cy, given) or _reshaped_hint(w, h, fx, fy, cx, cy, given)
     if unscaled is not None:
         return unscaled
     if _crop_fits(w, h, fx, fy, cx, cy):  # (a principal point outside the frame alone: a crop of a larger frame)
