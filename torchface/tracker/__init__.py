@@ -8,6 +8,7 @@ from torchface.tracker.lookahead import (
 from torchface.tracker.managed import (
     LandmarkDetector,
     ManagementState,
+    check_detector,
     estimate_confidence,
     initialise_managed,
     managed_step,
@@ -66,6 +67,7 @@ __all__ = [
     "TrackStatus",
     "TrackerConfig",
     "TrackerState",
+    "check_detector",
     "estimate_confidence",
     "face_width_px",
     "fit_landmarks",

@@ -49,6 +49,7 @@ the streams concerned (the recovery search loops over its lost streams).
 from __future__ import annotations
 
 import functools
+import inspect
 import math
 import warnings
 from collections.abc import Callable
@@ -68,6 +69,7 @@ from torchface.geometry.camera import Intrinsics
 from torchface.geometry.projection import project_points
 from torchface.geometry.so3 import axis_angle_to_matrix, geodesic_angle_deg, matrix_to_axis_angle, matrix_to_euler
 from torchface.geometry.transforms import transform_points
+from torchface.model.candide import load_candide3
 from torchface.model.face_model import FaceModel
 from torchface.normalise.face import NormalisedFaceLayout, apply_to_tensor_fields, build_normalised_layout
 from torchface.rendering.visibility import vertex_normals
@@ -144,8 +146,8 @@ from torchface.tracker.step import (
 )
 
 __all__ = [
-    "FirstPoseWatch", "LandmarkDetector", "ManagementState", "estimate_confidence", "initialise_managed",
-    "managed_step",
+    "FirstPoseWatch", "LandmarkDetector", "ManagementState", "check_detector", "check_detector_callable",
+    "estimate_confidence", "initialise_managed", "managed_step",
 ]
 
 #: A face detector for re-initialisation: ``frames (B, 3, H, W)`` float in [0, 1] -> ``landmarks (B, K, 2)``
@@ -829,6 +831,102 @@ def _as_rgb(frames: Tensor) -> Tensor:
     return frames.expand(-1, 3, -1, -1) if frames.shape[1] == 1 else frames
 
 
+def _ask_detector(detector: LandmarkDetector, frames: Tensor, k: int) -> tuple[Tensor, Tensor]:
+    """``detector``'s answer about ``frames`` ``(B', 3, H, W)`` (or gray ``(B', 1, H, W)``: :func:`_as_rgb`), the
+    frames of the streams it re-initialises, checked (:func:`_check_detector_output`, ``k``: the model's landmarks):
+    the landmarks ``(B', k, 2)`` and the streams in normalised coordinates ``(B',)``. The one call of a detector: a
+    recovery attempt's, a restart's and :func:`check_detector`'s."""
+    with torch.no_grad():
+        return _check_detector_output(detector(_as_rgb(frames)), frames.shape[0], k, frames.shape[-1], frames.shape[-2])
+
+
+def check_detector_callable(detector: object) -> None:
+    """Refuse, without calling it, a ``detector`` that cannot be the :data:`LandmarkDetector` the tracker calls as
+    ``detector(frames)`` (:class:`~torchface.FaceTracker` ``detector=``, :func:`check_detector`): not callable, a
+    class (not an instance of it), a per-image detector of :func:`~torchface.detect.load_detector`, or a callable
+    whose signature does not take one positional argument (a second required one, none at all). What it answers is
+    known only once it is called: :func:`check_detector`.
+
+    Raises:
+        TypeError: saying how to make a detector of it.
+    """
+    if not callable(detector):
+        raise TypeError(f"detector must be callable (frames -> landmarks), got {type(detector).__name__}")
+    from torchface.detect import _PerImageDetector  # (light: dlib or mediapipe is imported when one is made)
+
+    if isinstance(detector, _PerImageDetector):  # one image at a time: it failed at the first loss, with a shape error
+        raise TypeError(
+            "detector takes a batch of frames (B, 3, H, W) -> (B, K, 2): wrap the per-image detector of "
+            "load_detector in torchface.detect.batched(...)"
+        )
+    if isinstance(detector, type):  # (a class called with the frames made an instance of it, at the first loss)
+        name = detector.__qualname__
+        raise TypeError(f"detector must be a callable frames (B, 3, H, W) -> landmarks (B, K, 2), got the class "
+                        f"{name}: an instance of it, detector={name}(...)")  # fmt: skip
+    try:  # (its own signature: a wrapper's functools.wraps may name a function it calls with more arguments)
+        signature = inspect.signature(detector, follow_wrapped=False)
+    except (TypeError, ValueError):  # no signature to read (a builtin, some extension types): found at its call
+        return
+    try:
+        signature.bind(None)  # the tracker's call: detector(frames)
+    except TypeError as exc:
+        name = getattr(detector, "__qualname__", type(detector).__qualname__)
+        raise TypeError(
+            f"detector is called with one argument, the frames (B, 3, H, W) of the streams it re-initialises -> "
+            f"landmarks (B, K, 2), but {name}{signature} cannot be ({exc}): give its other arguments with "
+            "functools.partial(detector, ...) or a lambda frames: detector(frames, ...)"
+        ) from None
+
+
+@without_autograd(lambda *args, **kwargs: ())
+def check_detector(detector: LandmarkDetector, frames: Tensor, model: FaceModel | None = None) -> Tensor:
+    """Ask ``detector`` about ``frames`` once, as the re-initialisation of lost streams asks it
+    (:func:`managed_step`, :class:`~torchface.FaceTracker`), and check its answer as that does: the way to test a
+    detector before a long run, whose first loss may come late (a wrong answer was found only there). Nothing else
+    is called, nothing of a tracker changed; the detector's own state sees the call (a ``batched`` detector's
+    warning about a face at the frame's edge is given once, a MediaPipe landmarker in video mode takes a timestamp).
+
+    Args:
+        detector: the :data:`LandmarkDetector`, first checked without a call (:func:`check_detector_callable`).
+        frames: ``(B, 3, H, W)`` RGB or ``(B, 1, H, W)`` gray, float in [0, 1], as the tracker takes them: the
+            first frames of the videos, say (a frame without a face tests the answer of no face, NaN rows). They
+            reach the detector as the tracker hands them: RGB (gray expanded), in ``model``'s dtype and device, in
+            inference mode. A restart asks about the lost streams alone, any ``B'`` of ``B``: a detector that
+            answers a fixed batch shows it asked about one frame, ``frames[:1]``.
+        model: the tracked model, whose ``K = model.num_landmarks`` points are asked for; None: CANDIDE-3 (68).
+
+    Returns:
+        ``(B, K, 2)`` the landmarks as a restart takes them, in the detector's dtype: NaN rows where it found no face,
+        a point with an infinite coordinate or one NaN alone missing, and the streams whose landmarks lie in
+        normalised coordinates made no face; each with a ``RuntimeWarning`` that says so, as at a restart.
+
+    Raises:
+        TypeError: ``detector`` refused by :func:`check_detector_callable`; an answer that is not a tensor (None, a
+            NumPy array, a list: the message says how to make one) or whose values are bool or complex.
+        ValueError: frames the tracker would refuse; an answer not ``(B, K, 2)`` (one image's ``(K, 2)`` named).
+        Exception: whatever the detector raises, as it would at the restart.
+
+    Example:
+        >>> import torch
+        >>> good = lambda frames: torch.full((frames.shape[0], 68, 2), float("nan"))  # finds no face
+        >>> check_detector(good, torch.zeros(2, 3, 48, 64)).shape
+        torch.Size([2, 68, 2])
+        >>> check_detector(lambda frames: torch.zeros(68, 2), torch.zeros(1, 3, 48, 64))  # doctest: +ELLIPSIS
+        Traceback (most recent call last):
+        ...
+        ValueError: the detector must return (1, 68, 2) landmarks (NaN rows: no face), got (68, 2) (one image's ...
+    """
+    check_detector_callable(detector)
+    model = load_candide3() if model is None else model
+    if not isinstance(model, FaceModel):
+        raise TypeError(f"model must be a FaceModel or None (CANDIDE-3), got {type(model).__name__}")
+    check_frames(frames, values=True, row_stride=STEP_VALUE_ROW_STRIDE)
+    frames = frames.detach().to(dtype=model.dtype, device=model.device)  # (managed_step's frames)
+    # (the streams asked, all of them, as a restart picks them: a copy, which the detector may change)
+    every = torch.arange(frames.shape[0], device=frames.device)
+    return _ask_detector(detector, frames[every], model.num_landmarks)[0]
+
+
 #: The fewest valid template points an entry needs at a pyramid level for the recovery search to place it there
 #: (:attr:`~torchface.template.management.TemplateConfig.search_points`' least).
 _SEARCH_MIN_POINTS = 8
@@ -866,10 +964,7 @@ def _recovery_starts(
     found = torch.zeros(n, dtype=torch.bool, device=index.device)
     starts = conf_params.clone()
     if detector is not None:
-        with torch.no_grad():
-            lm, _ = _check_detector_output(
-                detector(_as_rgb(frames[index])), n, model.num_landmarks, frames.shape[-1], frames.shape[-2]
-            )
+        lm, _ = _ask_detector(detector, frames[index], model.num_landmarks)
         lm = lm.to(dtype=model.dtype, device=model.device)
         ok = torch.isfinite(lm).all(-1).sum(-1) >= max(4, model.num_landmarks // 2)
         if bool(ok.any()):
@@ -978,10 +1073,7 @@ def _restart(
     waiting). Returns the state, the result and the streams that started (int64 ``(n,)``)."""
     ms = cast(ManagementState, state.management)  # managed_step's: a managed state
     index = restart.nonzero().squeeze(-1)
-    with torch.no_grad():
-        lm, normalised = _check_detector_output(
-            detector(_as_rgb(frames[index])), index.shape[0], model.num_landmarks, frames.shape[-1], frames.shape[-2]
-        )
+    lm, normalised = _ask_detector(detector, frames[index], model.num_landmarks)
     lm = lm.to(dtype=model.dtype, device=model.device)
     found = torch.isfinite(lm).all(-1).sum(-1) >= max(4, model.num_landmarks // 2)
     normalised = normalised.to(found.device)

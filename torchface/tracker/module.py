@@ -16,7 +16,9 @@ from torchface.model.face_model import FaceModel
 from torchface.normalise.face import apply_to_tensor_fields
 from torchface.tracker.fit import LandmarkFit
 from torchface.tracker.lookahead import LookaheadConfig, check_refine_first
-from torchface.tracker.managed import LandmarkDetector, initialise_managed, managed_step
+from torchface.tracker.managed import (
+    LandmarkDetector, check_detector, check_detector_callable, initialise_managed, managed_step,
+)  # fmt: skip
 from torchface.tracker.step import (
     TrackerConfig, TrackerState, TrackResult, add_coarser_levels, check_frames, check_initialise_inputs,
     check_model_precision, pyramid_for_faces,
@@ -55,16 +57,8 @@ def _check_setting(name: str, value: Any) -> None:
         check_pyramid(value)
     if name == "refine_first":
         check_refine_first(value)
-    if name == "detector" and value is not None:
-        if not callable(value):
-            raise TypeError(f"detector must be callable (frames -> landmarks), got {type(value).__name__}")
-        from torchface.detect import _PerImageDetector  # (light: dlib or mediapipe is imported when one is made)
-
-        if isinstance(value, _PerImageDetector):  # one image at a time: it failed at the first loss, with a shape error
-            raise TypeError(
-                "detector takes a batch of frames (B, 3, H, W) -> (B, K, 2): wrap the per-image detector of "
-                "load_detector in torchface.detect.batched(...)"
-            )
+    if name == "detector" and value is not None:  # (not called: what it answers, FaceTracker.check_detector)
+        check_detector_callable(value)
 
 
 class FaceTracker(DeviceCheckedModule):
@@ -76,7 +70,9 @@ class FaceTracker(DeviceCheckedModule):
     :func:`~torchface.model.load_mesh_model`, the ICT Face Model). Template management
     (dissimilarity confidence, mosaic, loss and recovery) follows ``config.template``; ``detector`` (a
     :data:`~torchface.tracker.managed.LandmarkDetector`, ``frames (B, 3, H, W) -> landmarks (B, K, 2)`` with NaN
-    rows where no face was found) re-initialises lost streams, else they are searched for in the mosaic.
+    rows where no face was found) re-initialises lost streams, else they are searched for in the mosaic; it is
+    first called at the first loss, so :meth:`check_detector` tests what it answers before a long run (the
+    constructor refuses, without calling it, one that cannot be called with the frames alone).
     ``refine_first`` (a :class:`~torchface.tracker.lookahead.LookaheadConfig`, on by default; None: off; used with
     template management) is the online look-ahead start of :func:`~torchface.tracker.managed.initialise_managed`:
     once a stream's head has turned 10 degrees, its first pose, starting expression and the shape units the
@@ -329,6 +325,30 @@ class FaceTracker(DeviceCheckedModule):
         """``tracker(frames)`` by name: :meth:`forward` through the module's call, so that its hooks run (``step =
         forward`` skipped the forward hooks and pre-hooks registered on the tracker)."""
         return self(frames)
+
+    def check_detector(self, frames: Tensor) -> Tensor:
+        """Ask the tracker's ``detector`` about ``frames`` once, as a lost stream's re-initialisation asks it, and
+        check its answer as that does (:func:`~torchface.tracker.managed.check_detector`, with the tracker's model):
+        a detector's mistake (an answer of the wrong type, shape or dtype, NumPy for a tensor, one image's ``(K, 2)``
+        for ``(B, K, 2)``, an exception) was found only at the first loss, perhaps far into a long video. The
+        tracker's state is left as it is; the detector's own sees the call. The constructor already refused a
+        detector that cannot be called with the frames alone.
+
+        Args:
+            frames: ``(B, 3, H, W)`` RGB or ``(B, 1, H, W)`` gray, float in [0, 1] (a frame with a face and one
+                without test both answers).
+
+        Returns:
+            ``(B, K, 2)`` the landmarks as a restart takes them (NaN rows: no face).
+
+        Raises:
+            ValueError: the tracker has no detector; bad frames; an answer not ``(B, K, 2)``.
+            TypeError: an answer that is not a real tensor (the message says how to make one).
+        """
+        if self.detector is None:
+            raise ValueError("this tracker has no detector to check (detector=None: lost streams are searched for "
+                             "in their mosaic); FaceTracker(detector=...) sets one")  # fmt: skip
+        return check_detector(self.detector, frames, self.model)
 
     def _why_none(self) -> str:
         """Why the tracker holds no state, for an error message: `` (the tracker was moved ...)`` or empty."""
