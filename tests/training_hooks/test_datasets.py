@@ -522,6 +522,18 @@ def test_a_forgotten_set_epoch_is_told_once(clips, config, capfd):
         list(quiet)
 
 
+def test_a_forgotten_set_epoch_is_told_by_a_spawned_worker(clips, config, capfd):
+    """A spawned DataLoader worker, started anew each epoch, receives the dataset pickled by multiprocessing (its
+    shared memory by reference, not by value as a plain pickle's copy): the record it finds is the dataset's, and
+    the second epoch with no set_epoch is told (on the worker's stderr, by the default filter)."""
+    videos, lms = [c.video for c in clips[:2]], [c.landmarks for c in clips[:2]]
+    collect(VideoDataset(videos, lms, config), 0)  # fills the cache
+    data = VideoDataset(videos, lms, replace(config, shuffle_buffer=8, seed=5))
+    loader = DataLoader(data, batch_size=None, num_workers=1, multiprocessing_context="spawn")
+    orders, told = _orders(data, loader, [None, None], capfd)
+    assert orders[0] == orders[1] and len(told) == 1 and "data.set_epoch(epoch)" in told[0]
+
+
 def test_a_deep_copy_is_an_independent_dataset_whose_workers_share_its_state(clips, config, tmp_path):
     """copy.deepcopy(data) (a validation copy, a framework copying its datasets) gave the copy its state out of
     shared memory: its forked DataLoader workers each changed a private copy (a persistent worker missed every
@@ -1395,14 +1407,14 @@ def test_a_dataset_without_a_detector_shares_no_detection_store(clips, config):
     """The store of detections shared with the workers (1128 bytes a video: the frame, the content hash and 68
     float64 points) was made in shared memory for every dataset, with or without a detector: 1.1 GB of /dev/shm
     for a million clips given their landmarks (64 MB in a Docker container by default). Without a detector only
-    the counts are shared (8 bytes a video); with one, the store."""
+    the counts are shared (8 bytes a video, and 24 a dataset: the record of its iterations); with one, the store."""
     n = 2000
     for detector in (False, True):
         landmarks = (lambda image: clips[0].landmarks) if detector else [clips[0].landmarks] * n
         data = VideoDataset([clips[0].video] * n, landmarks, config)
         shared = sum(t.untyped_storage().nbytes() for t in vars(data).values()
                      if isinstance(t, torch.Tensor) and t.is_shared())  # fmt: skip
-        assert (shared > 1000 * n) if detector else (shared <= 8 * (n + 2))
+        assert (shared > 1000 * n) if detector else (shared <= 8 * (n + 2) + 24)
 
 
 def test_keep_going_skips_a_video_that_cannot_be_read_or_tracked(clips, config, tmp_path):
