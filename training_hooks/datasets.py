@@ -110,6 +110,26 @@ tracked (...)``, and ``the first item came in 41 s``). One process speaks: rank 
 a few videos, counts known already) says nothing; ``progress_after=None`` never does. Tracking after the first
 item says nothing (:attr:`VideoDataset.stats`, :func:`loader_throughput` measure it).
 
+Epochs: with :attr:`DatasetConfig.shuffle_buffer` the order is seeded by the epoch (:meth:`VideoDataset.set_epoch`),
+so a training loop that does not call ``set_epoch`` before each epoch repeats one order every epoch. The dataset
+counts its ``set_epoch`` calls (each call, of the same epoch too) and records what the last iteration begun had: that
+count, the ``DataLoader`` workers, the rank and the world size, which with the epoch decide the order; all in shared
+memory. An iteration that begins (its first item asked for) with the same, shuffled, repeats the last one's order,
+and :class:`RepeatedEpochWarning` says so, once per dataset. Iterations begin in the process that iterates the
+dataset (``num_workers=0``) or in its ``DataLoader`` workers (worker 0 records them): forked or spawned, persistent
+or started anew each epoch, the workers share the record with the dataset, so a forgotten ``set_epoch`` is told at
+the second epoch. Not told: a dataset without ``shuffle_buffer`` (the same order by design); an iteration after a
+``set_epoch`` of the same epoch (``data.set_epoch(data.epoch)``: the way to say the order is wanted again); one with
+other worker counts, rank or world size than the last (another order); the first iteration of a ``copy.deepcopy`` or
+plain-pickled copy (an independent dataset, not iterated yet; ``copy.copy`` shares the record, as the epoch);
+:mod:`training_hooks.lightning`'s loaders (they call ``set_epoch`` before each iteration); :func:`loader_throughput`'s
+pass (a measurement), nor the iteration after it. Told, as the order does
+repeat: a shuffled validation set iterated each epoch (give it ``shuffle_buffer=0``, or call
+``data.set_epoch(data.epoch)`` before it), and a first batch looked at (``next(iter(loader))``) followed by the first
+epoch with no ``set_epoch`` between (a loop that calls it after each epoch). Under DDP each rank's
+dataset keeps its own record. The warning can be filtered as any (a forked worker keeps the filter of the process
+that started it; a spawned one takes ``-W`` and ``PYTHONWARNINGS``).
+
 Copies: ``copy.copy(data)`` shares the dataset's state (the same shared memory: epoch, counts, detections, skips,
 the warnings given); ``copy.deepcopy(data)`` is an independent dataset, its state copied as it is then into shared
 memory of its own, which its own ``DataLoader`` workers share with it (not with ``data``). A ``DataLoader`` sends
@@ -203,6 +223,7 @@ __all__ = [
     "FrameFolderDataset",
     "LandmarkSource",
     "RankBalance",
+    "RepeatedEpochWarning",
     "ShortVideoWarning",
     "SkippedVideoWarning",
     "VideoDataset",
@@ -245,6 +266,15 @@ class ShortVideoWarning(UserWarning):
     gives a clip the dataset yields nothing: that is a ``ValueError`` instead (module docstring, "Short videos")."""
 
 
+class RepeatedEpochWarning(UserWarning):
+    """A shuffled dataset (:attr:`DatasetConfig.shuffle_buffer`) began an iteration in the same order as an earlier
+    one: no :meth:`VideoDataset.set_epoch` came between them, so a training loop that forgets it repeats its first
+    epoch's order every epoch. Warned once per dataset, by the process that began the iteration (a ``DataLoader``
+    worker prints it to its stderr), when the dataset can tell (module docstring, "Epochs"). Call
+    ``data.set_epoch(epoch)`` before each epoch (:class:`~training_hooks.lightning.TrackedFaceDataModule`'s loaders
+    do), or, to repeat an order deliberately, ``data.set_epoch(data.epoch)`` before the iteration."""
+
+
 class RankBalance(enum.Enum):
     """How the ranks of a ``torch.distributed`` group get equal item counts (module docstring, "Sharding"), as a
     ``DistributedSampler`` gives them: per ``DataLoader`` worker, so that their batch counts are equal too."""
@@ -262,8 +292,8 @@ class RankBalance(enum.Enum):
 
 
 #: A dataset's attributes in shared memory (:func:`_shared_state`, :func:`_shared_detections`, :func:`_shared_skips`,
-#: :func:`_shared_frames`).
-_SHARED_STATE: tuple[str, ...] = ("_shared", "_found_at", "_found", "_skips", "_frames")
+#: :func:`_shared_frames`, :func:`_shared_iterations`).
+_SHARED_STATE: tuple[str, ...] = ("_shared", "_found_at", "_found", "_skips", "_frames", "_iterations")
 
 #: Entries of a dataset's shared state (:func:`_shared_state`).
 _EPOCH, _WARNED, _COUNTS = 0, 1, 2
@@ -314,6 +344,30 @@ def _shared_frames(num_videos: int) -> Tensor:
     if num_videos:
         state[0] = 0
     return state.share_memory_()
+
+
+#: Entries of a dataset's record of its iterations (:func:`_shared_iterations`).
+_SETS, _TOLD, _BEGUN = 0, 1, 2
+
+
+def _shared_iterations() -> Tensor:
+    """``(3,)`` int64 in shared memory as :func:`_shared_state`, to tell an iteration that repeats an earlier one's
+    shuffled order (:class:`RepeatedEpochWarning`): how many times the epoch was set (each
+    :meth:`VideoDataset.set_epoch`, the same epoch too), whether the warning was given, and the
+    :func:`_iteration_mark` of the last iteration begun (-1: none). A separate tensor, not entries of
+    :func:`_shared_state`, whose layout a dataset pickled before it keeps."""
+    state = torch.zeros(3, dtype=torch.int64)
+    state[_BEGUN] = -1
+    return state.share_memory_()
+
+
+def _iteration_mark(sets: int, workers: int, rank: int, world: int) -> int:
+    """What decides an iteration's shuffled order besides the epoch, as one int64 (written and read whole, where
+    two processes of the dataset could meet): the count of :meth:`VideoDataset.set_epoch` calls (so a call, even
+    of the same epoch, makes the next iteration a new one), the ``DataLoader`` workers (1: none, the same order as
+    one worker), the rank and the world size. Two equal marks are the same order (hashed into 62 bits: two
+    different ones meet with a chance of 2**-62)."""
+    return hash((sets, workers, rank, world)) & ((1 << 62) - 1)
 
 
 #: :func:`_shared_frames`' entry of a skipped video.
@@ -1062,6 +1116,7 @@ class VideoDataset(IterableDataset):
         self._skips = _shared_skips(len(self.videos) if self.config.keep_going else 0)
         short = self.config.clip_length is not None and not self.config.keep_short_clips
         self._frames = _shared_frames(len(self.videos) if short else 0)
+        self._iterations = _shared_iterations()  # (the epochs set and the iterations begun: RepeatedEpochWarning)
         self._claims: _Claims | None = _Claims()  # (the once-per-dataset warnings' markers)
         self._progress: _CountProgress | None = None  # (what this process says the progress of now, if anything)
 
@@ -1102,6 +1157,10 @@ class VideoDataset(IterableDataset):
             state["_skips"] = _shared_skips(0)
         if "_frames" not in state:  # pickled before short videos were reported
             state["_frames"] = _shared_frames(0)
+        if "_iterations" not in state:  # pickled before repeated orders were told
+            state["_iterations"] = _shared_iterations()
+        elif not state["_iterations"].is_shared():  # (by value: an independent dataset, deepcopy or plain pickle, not
+            state["_iterations"][_BEGUN] = -1  # iterated yet: its first iteration repeats no order of its own)
         state.setdefault("_claims", None)  # (pickled before the claims: the flags alone, as then)
         state["_progress"] = None  # (this process's own)
         for name in _SHARED_STATE:  # (read back from a plain pickle, by value: an independent dataset, whose own
@@ -1136,11 +1195,17 @@ class VideoDataset(IterableDataset):
     @epoch.setter
     def epoch(self, epoch: int) -> None:
         self._shared[_EPOCH] = check_int(epoch, "epoch", 0)
+        self._iterations[_SETS] += 1  # (the next iteration is a new one, the same epoch too: RepeatedEpochWarning)
 
     def set_epoch(self, epoch: int) -> None:
         """Set the epoch that seeds the shuffling (call before each epoch's ``DataLoader`` iteration). The
         ``DataLoader`` workers' copies of the dataset share it, so ``persistent_workers=True`` workers shuffle
         each epoch anew too.
+
+        With :attr:`DatasetConfig.shuffle_buffer`, an iteration begun with no ``set_epoch`` since an earlier one
+        repeats its order: where the dataset can tell (module docstring, "Epochs"), a
+        :class:`RepeatedEpochWarning` says so, once. Calling ``set_epoch`` with the epoch it has
+        (``data.set_epoch(data.epoch)``) says the same order is wanted: the next iteration is not told.
 
         Raises:
             TypeError, ValueError: ``epoch`` is not an int >= 0 (``1.5`` and ``"2"`` were taken as 1 and 2)."""
@@ -1865,6 +1930,28 @@ class VideoDataset(IterableDataset):
             stacklevel=3,
         )
 
+    def _warn_repeated(self, workers: int, rank: int, world: int) -> None:
+        """Record the iteration this process's worker 0 (or the process, without workers) begins, and warn once per
+        dataset (:class:`RepeatedEpochWarning`) where it is shuffled in the order of the last one begun: the same
+        :func:`_iteration_mark` (no ``set_epoch`` since; the same workers, rank and world size)."""
+        record = self._iterations
+        mark = _iteration_mark(int(record[_SETS]), workers, rank, world)
+        repeated = int(record[_BEGUN]) == mark
+        record[_BEGUN] = mark
+        if not repeated or self.config.shuffle_buffer == 0 or int(record[_TOLD]) or not self._claim("repeated"):
+            return
+        record[_TOLD] = 1
+        warnings.warn(
+            f"{type(self).__name__}: an iteration began in the same shuffled order as the last one (epoch "
+            f"{self.epoch}, DatasetConfig.shuffle_buffer={self.config.shuffle_buffer}): no set_epoch came between "
+            "them, so every epoch of this loop repeats one order. Call data.set_epoch(epoch) before each epoch (or use "
+            "training_hooks.lightning.TrackedFaceDataModule's loaders, which do); to repeat the order deliberately (a "
+            "validation set: shuffle_buffer=0 shuffles nothing), call data.set_epoch(data.epoch) before it. Warned "
+            "once per dataset",
+            RepeatedEpochWarning,
+            stacklevel=4,
+        )
+
     def __iter__(self) -> Iterator[dict[str, Tensor]]:
         items = self._epoch_items()
         if self.config.progress_after is not None and self._speaks():
@@ -1876,8 +1963,9 @@ class VideoDataset(IterableDataset):
         rank, world = self.rank_and_world_size()
         info = get_worker_info()
         worker, workers = (0, 1) if info is None else (info.id, info.num_workers)
-        if worker == 0:  # (one worker per rank speaks for it)
+        if worker == 0:  # (one worker per rank speaks for it; each of a loader's iterations begins in worker 0)
             self._warn_distributed(rank, world)
+            self._warn_repeated(workers, rank, world)
         videos = self.worker_videos(worker, workers, rank, world)
         size = self.config.shuffle_buffer
         rng = None
@@ -1977,7 +2065,8 @@ def loader_throughput(
     """One full pass of a ``DataLoader`` over ``dataset``: normalised faces per second and where they came from.
 
     Args:
-        dataset: the dataset (its epoch and cache as they are).
+        dataset: the dataset (its epoch and cache as they are; the pass is a measurement, not an epoch: neither it
+            nor the next iteration is told :class:`RepeatedEpochWarning`).
         num_workers: ``DataLoader`` workers (0 = the calling process).
         batch_size: items per batch.
         collate_fn: e.g. :func:`~training_hooks.collate.collate_clips` for clips; None is PyTorch's default.
@@ -1988,16 +2077,20 @@ def loader_throughput(
     """
     loader = DataLoader(dataset, batch_size=batch_size, num_workers=num_workers, collate_fn=collate_fn)
     faces = cached = 0
+    dataset.set_epoch(dataset.epoch)  # (the order as it is, on purpose: RepeatedEpochWarning, before and after)
     t0 = time.perf_counter()
-    for batch in loader:
-        if "frame_mask" in batch:
-            per_item = batch["frame_mask"].sum(-1)
-        elif batch["face"].dim() == 5:
-            per_item = torch.full((batch["face"].shape[0],), batch["face"].shape[1])
-        else:
-            per_item = torch.ones(batch["face"].shape[0], dtype=torch.int64)
-        faces += int(per_item.sum())
-        cached += int((per_item * batch["cached"].reshape(-1)).sum())
+    try:
+        for batch in loader:
+            if "frame_mask" in batch:
+                per_item = batch["frame_mask"].sum(-1)
+            elif batch["face"].dim() == 5:
+                per_item = torch.full((batch["face"].shape[0],), batch["face"].shape[1])
+            else:
+                per_item = torch.ones(batch["face"].shape[0], dtype=torch.int64)
+            faces += int(per_item.sum())
+            cached += int((per_item * batch["cached"].reshape(-1)).sum())
+    finally:
+        dataset.set_epoch(dataset.epoch)
     seconds = time.perf_counter() - t0
     return {
         "faces": float(faces),

@@ -110,8 +110,11 @@ class TrackingQualityCallback(pl.Callback):
 
 class _EpochLoader(DataLoader):
     """A ``DataLoader`` that hands its dataset ``epoch()`` (:meth:`VideoDataset.set_epoch
-    <training_hooks.datasets.VideoDataset.set_epoch>`; None: left as it is) each time an epoch's iteration starts
-    (:class:`TrackedFaceDataModule`'s training loader)."""
+    <training_hooks.datasets.VideoDataset.set_epoch>`; None: the epoch it has, the same order on purpose) each time
+    an epoch's iteration starts (:class:`TrackedFaceDataModule`'s loaders: the training one the trainer's epoch, the
+    validation one None). Each iteration so follows a ``set_epoch``, and none is told it repeats an order
+    (:class:`~training_hooks.datasets.RepeatedEpochWarning`: a shuffled validation set, or a loader used without a
+    trainer, repeats it by design)."""
 
     def __init__(self, *args: Any, epoch: Callable[[], int | None], **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
@@ -119,9 +122,14 @@ class _EpochLoader(DataLoader):
 
     def __iter__(self) -> Iterator[Any]:  # type: ignore[override]
         epoch = self._epoch_of()
-        if epoch is not None:
-            self.dataset.set_epoch(epoch)  # type: ignore[attr-defined]
+        dataset: VideoDataset = self.dataset  # type: ignore[assignment]
+        dataset.set_epoch(dataset.epoch if epoch is None else epoch)
         return super().__iter__()
+
+
+def _kept_epoch() -> None:
+    """The validation loader's epoch (:class:`_EpochLoader`): the one its dataset has."""
+    return None
 
 
 class _OptionalValidation:
@@ -202,7 +210,9 @@ class TrackedFaceDataModule(pl.LightningDataModule):
     (:attr:`DatasetConfig.shuffle_buffer <training_hooks.datasets.DatasetConfig.shuffle_buffer>`) draws a new order
     every epoch with the trainer's defaults too (Lightning builds the loader once and calls ``set_epoch`` on samplers
     alone, which an iterable dataset's loader has none of: every epoch repeated the first one's order unless the
-    trainer had ``reload_dataloaders_every_n_epochs=1``).
+    trainer had ``reload_dataloaders_every_n_epochs=1``). The validation loader passes its dataset's own epoch
+    (the same order each time, on purpose), and so does the training loader without a trainer: neither is told
+    :class:`~training_hooks.datasets.RepeatedEpochWarning`.
 
     Distributed (DDP) training: each rank's loaders yield that rank's share of the videos (video ``i`` -> rank
     ``i % world_size``, :mod:`training_hooks.datasets`, "Sharding"; the datasets are iterable, so Lightning adds no
@@ -284,9 +294,7 @@ class TrackedFaceDataModule(pl.LightningDataModule):
             drop_last=self.drop_last and epochs, timeout=self.timeout, persistent_workers=self.persistent_workers,
             prefetch_factor=self.prefetch_factor, multiprocessing_context=self.multiprocessing_context,
         )  # fmt: skip
-        if epochs:
-            return _EpochLoader(dataset, epoch=self._trainer_epoch, **kwargs)
-        return DataLoader(dataset, **kwargs)
+        return _EpochLoader(dataset, epoch=self._trainer_epoch if epochs else _kept_epoch, **kwargs)
 
     def _trainer_epoch(self) -> int | None:
         """The attached trainer's current epoch, or None without a trainer."""

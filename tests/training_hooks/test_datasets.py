@@ -9,6 +9,7 @@ import itertools
 import os
 import pickle
 import re
+import sys
 import typing
 import warnings
 from dataclasses import replace
@@ -28,12 +29,14 @@ from training_hooks import (
     DatasetConfig,
     FrameFolderDataset,
     NormaliseFaces,
+    RepeatedEpochWarning,
     ShortVideoWarning,
     VideoDataset,
     cache_key,
     clip_bounds,
     collate_clips,
     content_hash,
+    loader_throughput,
 )
 from training_hooks.transforms import PER_FRAME_KEYS
 
@@ -430,7 +433,9 @@ def test_shuffle_buffer_permutes_but_keeps_items(clips, config):
     plain = collect(VideoDataset(videos, lms, config), 0)  # fills the cache
     shuffled = VideoDataset(videos, lms, replace(config, shuffle_buffer=8, seed=5))
     order = lambda: [(int(i["video"]), int(i["frame"])) for i in shuffled]  # noqa: E731
-    first, again = order(), order()
+    first = order()
+    with pytest.warns(RepeatedEpochWarning):  # (no set_epoch between: the same order, told)
+        again = order()
     assert first == again and sorted(first) == sorted(plain)
     assert first != sorted(first)
     shuffled.set_epoch(1)
@@ -454,6 +459,79 @@ def test_set_epoch_reaches_persistent_workers(clips, config):
     for epoch in range(2):
         shuffled.set_epoch(epoch)
         assert [(int(i["video"]), int(i["frame"])) for i in loader] == expected[epoch]
+
+
+def _orders(data: VideoDataset, loader, epochs, capfd) -> tuple[list[list[tuple[int, int]]], list[str]]:
+    """Each epoch's order of ``loader`` (a ``DataLoader`` over ``data``, batch_size=None), ``epochs`` giving the
+    ``set_epoch`` before each (None: none), and the RepeatedEpochWarning lines its processes wrote to stderr (the
+    workers' warnings go there, and this process's, written there as the workers write them)."""
+    capfd.readouterr()
+    orders = []
+    with warnings.catch_warnings():
+        warnings.simplefilter("always")  # (forked workers keep the filter and the writer to stderr)
+        warnings.showwarning = lambda message, category, *args, **kwargs: print(f"{category.__name__}: {message}",
+                                                                                file=sys.stderr, flush=True)
+        for epoch in epochs:
+            if epoch is not None:
+                data.set_epoch(epoch)
+            orders.append([(int(i["video"]), int(i["frame"])) for i in loader])
+    told = [line for line in capfd.readouterr().err.splitlines() if "RepeatedEpochWarning" in line]
+    return orders, told
+
+
+def test_a_forgotten_set_epoch_is_told_once(clips, config, capfd):
+    """A plain loop that forgot ``data.set_epoch(epoch)`` iterated a shuffled dataset in the same order every epoch
+    without a word (documented only). The second iteration begun with no ``set_epoch`` since the last, shuffled, is
+    a RepeatedEpochWarning naming the fix, once per dataset: in this process (num_workers=0), and from DataLoader
+    worker 0 (two forked workers, started anew each epoch or persistent: the record is in the dataset's shared
+    memory). Not told: a ``set_epoch`` before each epoch (the same epoch too: the order wanted again), a dataset
+    without shuffling, and the first iteration of a deep or pickled copy (independent datasets)."""
+    videos, lms = [c.video for c in clips], [c.landmarks for c in clips]
+    collect(VideoDataset(videos, lms, config), 0)  # fills the cache
+    shuffled = replace(config, shuffle_buffer=8, seed=5)
+    for workers, persistent in ((0, False), (2, False), (2, True)):
+        data = VideoDataset(videos, lms, shuffled)
+        loader = DataLoader(data, batch_size=None, num_workers=workers, persistent_workers=persistent,
+                            multiprocessing_context="fork" if workers else None)  # fmt: skip
+        orders, told = _orders(data, loader, [None, None, None], capfd)
+        assert orders[0] == orders[1] == orders[2]
+        assert len(told) == 1, (workers, persistent, told)  # (the second epoch; not again at the third)
+        assert "set_epoch(epoch) before each epoch" in told[0] and "TrackedFaceDataModule" in told[0]
+        again = VideoDataset(videos, lms, shuffled)  # set_epoch before each epoch: never told
+        loader = DataLoader(again, batch_size=None, num_workers=workers, persistent_workers=persistent,
+                            multiprocessing_context="fork" if workers else None)  # fmt: skip
+        orders, told = _orders(again, loader, [0, 1, 1, 1], capfd)  # (1 again: the same order, deliberately)
+        assert orders[0] != orders[1] == orders[2] == orders[3] and told == [], (workers, persistent, told)
+    plain = VideoDataset(videos, lms, config)  # no shuffling: the same order is the design, never told
+    assert _orders(plain, plain, [None, None], capfd)[1] == []
+    data = VideoDataset(videos, lms, shuffled)
+    assert _orders(data, data, [None], capfd)[1] == []
+    for copied in (copy.deepcopy(data), pickle.loads(pickle.dumps(data))):  # independent: not iterated yet
+        assert _orders(copied, copied, [None], capfd)[1] == []
+        assert len(_orders(copied, copied, [None], capfd)[1]) == 1  # (their own second iteration)
+    shallow = copy.copy(data)  # (shares the dataset's state: its iteration repeats the dataset's)
+    assert len(_orders(shallow, shallow, [None], capfd)[1]) == 1
+    assert _orders(data, data, [None], capfd)[1] == []  # (told once per dataset: the copy.copy was the dataset)
+    quiet = VideoDataset(videos, lms, shuffled)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        for _ in range(2):  # (a measurement, not an epoch: neither told nor telling the next iteration)
+            loader_throughput(quiet, 0)
+        list(quiet)
+        warnings.filterwarnings("ignore", category=RepeatedEpochWarning)  # the standard filter silences it
+        list(quiet)
+
+
+def test_a_forgotten_set_epoch_is_told_by_a_spawned_worker(clips, config, capfd):
+    """A spawned DataLoader worker, started anew each epoch, receives the dataset pickled by multiprocessing (its
+    shared memory by reference, not by value as a plain pickle's copy): the record it finds is the dataset's, and
+    the second epoch with no set_epoch is told (on the worker's stderr, by the default filter)."""
+    videos, lms = [c.video for c in clips[:2]], [c.landmarks for c in clips[:2]]
+    collect(VideoDataset(videos, lms, config), 0)  # fills the cache
+    data = VideoDataset(videos, lms, replace(config, shuffle_buffer=8, seed=5))
+    loader = DataLoader(data, batch_size=None, num_workers=1, multiprocessing_context="spawn")
+    orders, told = _orders(data, loader, [None, None], capfd)
+    assert orders[0] == orders[1] and len(told) == 1 and "data.set_epoch(epoch)" in told[0]
 
 
 def test_a_deep_copy_is_an_independent_dataset_whose_workers_share_its_state(clips, config, tmp_path):
@@ -1329,14 +1407,14 @@ def test_a_dataset_without_a_detector_shares_no_detection_store(clips, config):
     """The store of detections shared with the workers (1128 bytes a video: the frame, the content hash and 68
     float64 points) was made in shared memory for every dataset, with or without a detector: 1.1 GB of /dev/shm
     for a million clips given their landmarks (64 MB in a Docker container by default). Without a detector only
-    the counts are shared (8 bytes a video); with one, the store."""
+    the counts are shared (8 bytes a video, and 24 a dataset: the record of its iterations); with one, the store."""
     n = 2000
     for detector in (False, True):
         landmarks = (lambda image: clips[0].landmarks) if detector else [clips[0].landmarks] * n
         data = VideoDataset([clips[0].video] * n, landmarks, config)
         shared = sum(t.untyped_storage().nbytes() for t in vars(data).values()
                      if isinstance(t, torch.Tensor) and t.is_shared())  # fmt: skip
-        assert (shared > 1000 * n) if detector else (shared <= 8 * (n + 2))
+        assert (shared > 1000 * n) if detector else (shared <= 8 * (n + 2) + 24)
 
 
 def test_keep_going_skips_a_video_that_cannot_be_read_or_tracked(clips, config, tmp_path):

@@ -28,6 +28,7 @@ from training_hooks import (
     DistributedWarning,
     FrameFolderDataset,
     RankBalance,
+    RepeatedEpochWarning,
     ShortVideoWarning,
     TrackingQualityLogger,
     VideoDataset,
@@ -233,6 +234,33 @@ def test_a_rank_without_a_video_warns_once(clips, config, monkeypatch):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         assert len(list(one)) == FRAMES
+
+
+def test_a_ranks_forgotten_set_epoch_is_told_and_another_ranks_order_is_not(clips, config, monkeypatch):
+    """Under DDP each rank holds its own dataset, whose record tells its repeated shuffled order
+    (RepeatedEpochWarning) as without a group. The rank and world size are part of the order: one dataset iterated
+    as rank 0, then 1, then 0 of 2 (each another order than the last) is not told; rank 0 again is, once; a
+    ``set_epoch`` before each epoch never is."""
+    rank = [0]
+    monkeypatch.setattr(torch.distributed, "is_available", lambda: True)
+    monkeypatch.setattr(torch.distributed, "is_initialized", lambda: True)
+    monkeypatch.setattr(torch.distributed, "get_world_size", lambda group=None: 2)
+    monkeypatch.setattr(torch.distributed, "get_rank", lambda group=None: rank[0])
+    videos, landmarks = [c.video for c in clips], [c.landmarks for c in clips]
+    shuffled = replace(config, shuffle_buffer=4, rank_balance=RankBalance.UNEVEN)
+    data, anew = VideoDataset(videos, landmarks, shuffled), VideoDataset(videos, landmarks, shuffled)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        for rank[0] in (0, 1, 0):
+            list(data)
+        assert caught == []
+        for _ in range(2):
+            list(data)  # (rank 0 again: told once)
+        for epoch in range(3):
+            anew.set_epoch(epoch)
+            list(anew)
+    assert [w.category for w in caught] == [RepeatedEpochWarning]
+    assert "epoch 0" in str(caught[0].message) and "data.set_epoch(epoch)" in str(caught[0].message)
 
 
 # --------------------------------------------------------------------------------------------- equal counts (simulated)

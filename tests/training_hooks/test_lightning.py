@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 import subprocess
 import sys
+import warnings
 from dataclasses import replace
 
 import pytest
@@ -143,6 +144,35 @@ def test_datamodule_shuffles_each_epoch_anew_with_the_trainers_defaults(clips, c
     assert [module.seen[e] for e in range(3)] == expected
 
 
+def test_the_datamodules_loaders_never_tell_a_repeated_order(clips, config):
+    """RepeatedEpochWarning tells a plain loop that repeats a shuffled order (no ``set_epoch`` between two
+    iterations). The module's loaders call ``set_epoch`` before each iteration: the training one the trainer's
+    epoch, the validation one its dataset's own (a shuffled validation set, iterated by the sanity check and every
+    epoch in one order: by design), and so does the training one without a trainer. None is told."""
+    from training_hooks import RepeatedEpochWarning
+    from training_hooks.lightning import TrackedFaceDataModule
+
+    shuffled = replace(config, shuffle_buffer=8)
+    data = VideoDataset([c.video for c in clips[:2]], [c.landmarks for c in clips[:2]], shuffled)
+    val = VideoDataset([clips[2].video], [clips[2].landmarks], shuffled)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        trainer = pl.Trainer(
+            max_epochs=2, logger=False, enable_checkpointing=False, enable_progress_bar=False,
+            enable_model_summary=False, accelerator="cpu",
+        )  # fmt: skip
+        trainer.fit(TinyModel(), datamodule=TrackedFaceDataModule(data, val=val, batch_size=4))
+        module = TrackedFaceDataModule(data, val=val, batch_size=4)  # no trainer
+        train, validation = module.train_dataloader(), module.val_dataloader()
+        for _ in range(2):
+            assert list(train) and list(validation)
+    assert not [w for w in caught if issubclass(w.category, RepeatedEpochWarning)]
+    assert val.epoch == 0
+    with pytest.warns(RepeatedEpochWarning):  # (a plain loop over either is told)
+        for _ in range(2):
+            list(DataLoader(val, batch_size=4))
+
+
 def test_datamodule_passes_the_loader_settings_through(clips, config):
     """``TrackedFaceDataModule`` took batch size, workers and collate alone: ``pin_memory``, ``persistent_workers``,
     ``prefetch_factor``, ``multiprocessing_context``, ``drop_last`` and ``timeout`` were a TypeError. Both loaders get
@@ -189,10 +219,11 @@ def test_datamodule_passes_the_loader_settings_through(clips, config):
 
 
 @NO_VAL_NOTICE
-def test_datamodule_persistent_workers_shuffle_each_epoch_anew(clips, config):
+def test_datamodule_persistent_workers_shuffle_each_epoch_anew(clips, config, capfd):
     """Two persistent workers (the default with workers) over three epochs of a trainer: each epoch's items are the
     epoch's ``set_epoch`` order of two workers (the workers, kept, see the epoch through the dataset's shared
-    memory), and the same whatever torch's random state (the shuffling is seeded by ``DatasetConfig.seed``)."""
+    memory), and the same whatever torch's random state (the shuffling is seeded by ``DatasetConfig.seed``). No
+    worker tells a RepeatedEpochWarning (the loader calls ``set_epoch`` before each epoch)."""
     from torch.utils.data import DataLoader
 
     from training_hooks.lightning import TrackedFaceDataModule
@@ -215,7 +246,13 @@ def test_datamodule_persistent_workers_shuffle_each_epoch_anew(clips, config):
         max_epochs=3, logger=False, enable_checkpointing=False, enable_progress_bar=False, enable_model_summary=False,
         accelerator="cpu", num_sanity_val_steps=0,
     )  # fmt: skip
-    trainer.fit(module, datamodule=datamodule)
+    capfd.readouterr()
+    with warnings.catch_warnings():
+        warnings.simplefilter("always")  # (the forked workers keep the filter and the writer to stderr)
+        warnings.showwarning = lambda message, category, *args, **kwargs: print(f"{category.__name__}: {message}",
+                                                                                file=sys.stderr, flush=True)
+        trainer.fit(module, datamodule=datamodule)
+    assert "RepeatedEpochWarning" not in capfd.readouterr().err
     assert datamodule.persistent_workers
     assert [module.seen[e] for e in range(3)] == expected
 
