@@ -1031,6 +1031,12 @@ class VideoDataset(IterableDataset):
         else:
             if isinstance(landmarks, (str, os.PathLike, np.ndarray, Tensor)) or not isinstance(landmarks, Sequence):
                 shape = f" of shape {tuple(landmarks.shape)}" if isinstance(landmarks, (np.ndarray, Tensor)) else ""
+                # (one video's points or file, not in a list, was told the type and shape alone)
+                single = isinstance(landmarks, (str, os.PathLike)) or isinstance(landmarks, (np.ndarray, Tensor)) and (
+                    tuple(landmarks.shape) in ((num_landmarks, 2), (2 * num_landmarks,)))  # fmt: skip
+                if single:
+                    shape += (": one video's, in a list: [landmarks]" if len(self.videos) == 1 else
+                              f": one video's? give one entry per video, a list of {len(self.videos)}")  # fmt: skip
                 raise TypeError(
                     f"landmarks must be a sequence with one {one} array/tensor or landmarks file per video, an "
                     f"(N, {one[1:]} stack of them, or a detector callable, got {type(landmarks).__name__}{shape}"
