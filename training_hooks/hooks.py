@@ -13,6 +13,7 @@ Batches are dicts of batch-first tensors as the datasets and collates make them:
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple
@@ -81,8 +82,13 @@ def confidence_weighted_loss(loss: Tensor, confidence: Tensor, mask: Tensor | No
     """Mean of a per-sample loss weighted by the tracker's confidence: ``sum c m l / sum c m``.
 
     The weights are detached (the confidence is data, not a parameter). An entry of weight zero (confidence 0,
-    or ``mask`` False, e.g. a padded frame) contributes exactly 0 to the value and the gradient, even where its
-    loss is NaN or inf; when every weight is zero the result is zero, still connected to the graph, never NaN.
+    or ``mask`` False, e.g. a padded frame) contributes exactly 0 to the value and to the gradient w.r.t. ``loss``,
+    even where its loss is NaN or inf; when every weight is zero the result is zero, still connected to the graph,
+    never NaN. What no loss function can undo is a NaN made before it: the backward of whatever computed a NaN loss
+    multiplies that 0 by NaN, and the network's gradients come out NaN (a padded or failed frame's face is black:
+    divided by its own standard deviation it is 0 / 0). A ``RuntimeWarning`` says so where ``loss`` has a graph and
+    is NaN or inf at an entry of weight zero: compute the loss of the real frames alone, or keep those inputs
+    finite.
     Under DDP each rank weighs its own batch, and DDP averages the ranks' gradients: the step follows the mean of
     the ranks' weighted means, not one weighted mean over every rank's samples.
 
@@ -120,6 +126,18 @@ def confidence_weighted_loss(loss: Tensor, confidence: Tensor, mask: Tensor | No
     if mask is not None:
         c = c * mask.to(device=c.device, dtype=c.dtype)
     # torch.where, not the product alone: 0 * NaN (a padded frame's 0 / 0 loss) would be NaN.
+    if loss.grad_fn is not None:  # (the parameters' gradients came out NaN without a word)
+        bad = int(((c <= 0) & ~torch.isfinite(loss.detach())).sum())
+        if bad:
+            warnings.warn(
+                f"confidence_weighted_loss: the loss is NaN or inf at {bad} of its {loss.numel()} entries of weight 0 "
+                "(padded, failed or zero-confidence frames): they add 0 to the value, but the backward of what made "
+                "them NaN gives NaN gradients upstream (0 * NaN). Compute the loss of the real frames alone (e.g. of "
+                "batch['face'][batch['frame_mask']]), or keep those inputs finite (a black padded face over its own "
+                "standard deviation is 0 / 0)",
+                RuntimeWarning,
+                stacklevel=2,
+            )
     weighted = torch.where(c > 0, loss * c, 0.0).sum()
     total = c.sum()
     if float(total) <= 0.0:
