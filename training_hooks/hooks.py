@@ -78,6 +78,20 @@ def _valid(batch: Mapping[str, Any]) -> Tensor:
     return torch.ones_like(conf, dtype=torch.bool) if mask is None else mask.to(torch.bool)
 
 
+def _loss_shape_hint(loss: tuple[int, ...], confidence: tuple[int, ...]) -> str:
+    """How to make a ``loss`` of another shape than the ``confidence`` one :func:`confidence_weighted_loss` takes
+    ("" when nothing fits): a loss already reduced (a loss function's default ``reduction="mean"``), one per clip of
+    a clip batch, or a ``(B, 1)`` head's (they were told the shapes alone)."""
+    if loss == ():
+        return " (a scalar: compute the loss with reduction=\"none\", one per sample or frame)"
+    if len(confidence) == 2 and loss == confidence[:1]:
+        return (" (one loss per clip, the confidence per frame: weigh it by each clip's, sample_confidence(batch), "
+                "or compute a loss per frame)")
+    if loss == (*confidence, 1):
+        return " (a trailing 1: loss.squeeze(-1))"
+    return ""
+
+
 def confidence_weighted_loss(loss: Tensor, confidence: Tensor, mask: Tensor | None = None) -> Tensor:
     """Mean of a per-sample loss weighted by the tracker's confidence: ``sum c m l / sum c m``.
 
@@ -118,6 +132,7 @@ def confidence_weighted_loss(loss: Tensor, confidence: Tensor, mask: Tensor | No
         got = tuple(mask.shape) if mask is not None else None
         raise ValueError(
             f"loss, confidence and mask must have one shape, got {tuple(loss.shape)}, {tuple(confidence.shape)}, {got}"
+            f"{_loss_shape_hint(tuple(loss.shape), tuple(confidence.shape))}"
         )
     # (on the loss's device: a batch's confidence stays on the CPU where a training loop moves its images alone)
     c = confidence.detach().to(device=loss.device, dtype=loss.dtype)

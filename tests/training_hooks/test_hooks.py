@@ -130,6 +130,26 @@ def test_weighted_loss_warns_of_a_nan_loss_made_upstream_at_a_zero_weight_entry(
     assert bool(torch.isfinite(w.grad).all())
 
 
+def test_weighted_loss_of_another_shape_is_told_how_to_make_it():
+    """A loss already reduced (cross_entropy's default reduction="mean"), one per clip of a clip batch and a (B, 1)
+    head's were told the shapes alone."""
+    conf, mask = torch.rand(4, 3), torch.ones(4, 3, dtype=torch.bool)
+    logits, y = torch.randn(4, 2), torch.tensor([0, 1, 0, 1])
+    with pytest.raises(ValueError, match=r"got \(\), \(4, 3\), \(4, 3\) \(a scalar: compute the loss with "
+                                         r'reduction="none", one per sample or frame\)$'):
+        confidence_weighted_loss(torch.nn.functional.cross_entropy(logits, y), conf, mask)
+    per_clip = torch.nn.functional.cross_entropy(logits, y, reduction="none")
+    with pytest.raises(ValueError, match=r"got \(4,\), \(4, 3\), \(4, 3\) \(one loss per clip, the confidence per "
+                                         r"frame: weigh it by each clip's, sample_confidence\(batch\), or compute"):
+        confidence_weighted_loss(per_clip, conf, mask)
+    batch = {"confidence": conf, "frame_mask": mask}
+    assert bool(torch.isfinite(confidence_weighted_loss(per_clip, sample_confidence(batch))))  # (the way named)
+    with pytest.raises(ValueError, match=r"got \(4, 1\), \(4,\), None \(a trailing 1: loss.squeeze\(-1\)\)$"):
+        confidence_weighted_loss(torch.rand(4, 1), conf[:, 0])
+    with pytest.raises(ValueError, match=r"got \(4, 2\), \(4, 3\), None$"):  # (nothing to say)
+        confidence_weighted_loss(torch.rand(4, 2), conf)
+
+
 def test_weighted_loss_bad_input():
     with pytest.raises(ValueError, match="one shape"):
         confidence_weighted_loss(torch.ones(3), torch.ones(2))
