@@ -192,6 +192,7 @@ from torchface.io.video import (
     open_frames,
 )
 from torchface.model.face_model import FaceModel
+from torchface.tracker.step import TrackerConfig
 from training_hooks.cache import CacheStats, TrackCache, cache_key, content_hash
 from training_hooks.transforms import FaceTrackingConfig, NormaliseFaces, TrackedSequence, _landmarks_shape_hint
 
@@ -770,7 +771,10 @@ class DatasetConfig:
 
     def __post_init__(self) -> None:
         if not isinstance(self.tracking, FaceTrackingConfig):
-            raise TypeError(f"tracking must be a FaceTrackingConfig, got {type(self.tracking).__name__}")
+            # (the tracker's own settings, one level down, were told the type alone)
+            hint = (", which goes inside it: FaceTrackingConfig(tracker=TrackerConfig(...))"
+                    if isinstance(self.tracking, TrackerConfig) else "")  # fmt: skip
+            raise TypeError(f"tracking must be a FaceTrackingConfig, got {type(self.tracking).__name__}{hint}")
         for name in ("clip_length", "clip_stride"):
             object.__setattr__(self, name, check_optional_int(getattr(self, name), name, 1))
         if self.clip_stride is not None and self.clip_length is None:
