@@ -48,9 +48,10 @@ def _check_same_shape(key: str, values: list[object], lengths: list[int]) -> Non
     between items, naming it; where their leading sizes are the clips' lengths, say how to pad it as a per-frame key
     (a per-frame label of clips of 3 and 5 frames was torch's "stack expects each tensor to be equal size, but got
     [3] at entry 0 and [5] at entry 1", naming no key)."""
-    if not all(isinstance(v, (Tensor, np.ndarray)) for v in values):
+    arrays = [v for v in values if isinstance(v, (Tensor, np.ndarray))]
+    if len(arrays) != len(values):
         return
-    shapes = [tuple(v.shape) for v in values]  # type: ignore[union-attr]
+    shapes = [tuple(v.shape) for v in arrays]
     if len(set(shapes)) < 2:
         return
     hint = ""
