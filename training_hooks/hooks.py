@@ -140,7 +140,6 @@ def confidence_weighted_loss(loss: Tensor, confidence: Tensor, mask: Tensor | No
         raise ValueError("confidence must be finite and in [0, 1]")
     if mask is not None:
         c = c * mask.to(device=c.device, dtype=c.dtype)
-    # torch.where, not the product alone: 0 * NaN (a padded frame's 0 / 0 loss) would be NaN.
     if loss.grad_fn is not None:  # (the parameters' gradients came out NaN without a word)
         bad = int(((c <= 0) & ~torch.isfinite(loss.detach())).sum())
         if bad:
@@ -153,6 +152,7 @@ def confidence_weighted_loss(loss: Tensor, confidence: Tensor, mask: Tensor | No
                 RuntimeWarning,
                 stacklevel=2,
             )
+    # torch.where, not the product alone: 0 * NaN (a padded frame's 0 / 0 loss) would be NaN.
     weighted = torch.where(c > 0, loss * c, 0.0).sum()
     total = c.sum()
     if float(total) <= 0.0:
