@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Collection, Sequence
 
+import numpy as np
 import torch
 from torch import Tensor
 from torch.utils.data import default_collate
@@ -42,6 +43,28 @@ def pad_value(key: str, example: Tensor) -> Tensor:
     return torch.zeros_like(example)
 
 
+def _check_same_shape(key: str, values: list[object], lengths: list[int]) -> None:
+    """Refuse a key batched with ``default_collate`` (not in ``per_frame_keys``) whose arrays differ in shape
+    between items, naming it; where their leading sizes are the clips' lengths, say how to pad it as a per-frame key
+    (a per-frame label of clips of 3 and 5 frames was torch's "stack expects each tensor to be equal size, but got
+    [3] at entry 0 and [5] at entry 1", naming no key)."""
+    arrays = [v for v in values if isinstance(v, (Tensor, np.ndarray))]
+    if len(arrays) != len(values):
+        return
+    shapes = [tuple(v.shape) for v in arrays]
+    if len(set(shapes)) < 2:
+        return
+    hint = ""
+    if all(len(s) >= 1 and s[0] == n for s, n in zip(shapes, lengths)):
+        hint = (f": one value per frame? name it a per-frame key, padded as the others, collate_clips(batch, "
+                f"per_frame_keys=(*training_hooks.transforms.PER_FRAME_KEYS, {key!r}))")
+    k = next(k for k, s in enumerate(shapes) if s != shapes[0])
+    raise ValueError(
+        f"{key!r} is batched per clip (not a per-frame key) but item {k} has shape {shapes[k]}, item 0 "
+        f"{shapes[0]}{hint}"
+    )
+
+
 def collate_clips(
     batch: Sequence[dict[str, Tensor]], per_frame_keys: Sequence[str] = PER_FRAME_KEYS
 ) -> dict[str, Tensor]:
@@ -53,7 +76,7 @@ def collate_clips(
             (``video``, ``cached``, ``shape_coeffs``, a label, ...) is batched with ``default_collate``.
         per_frame_keys: the keys with a leading time axis (default
             :data:`~training_hooks.transforms.PER_FRAME_KEYS`; keys an item lacks are skipped, so add your own
-            per-frame keys here).
+            per-frame keys to them: ``(*PER_FRAME_KEYS, "frame_label")``; given alone they replace them).
 
     Returns:
         The per-frame keys as ``(B, T, ...)`` tensors, padded after each clip's end with :func:`pad_value`
@@ -63,7 +86,9 @@ def collate_clips(
     Raises:
         TypeError: ``batch`` is one item (a dict) rather than a list of them, or holds something other than dicts.
         ValueError: an empty batch, items with different keys, a per-frame tensor without a time axis, lengths
-            that differ within an item, or trailing shapes that differ between items, or an integer and a float
+            that differ within an item, or trailing shapes that differ between items, an array under another key
+            whose shape differs between items (a per-frame key left out of ``per_frame_keys`` is named so), or an
+            integer and a float
             dtype under one key (a ``uint8`` face in ``[0, 255]`` and a float one in ``[0, 1]`` do not batch; float32
             and float64 batch as float64).
 
@@ -131,6 +156,8 @@ def collate_clips(
             padded[k, : lengths[k]] = item[key]
         out[key] = padded
     rest = [key for key in keys if key not in frame_keys]
+    for key in rest:  # (default_collate's "stack expects each tensor to be equal size" named no key)
+        _check_same_shape(key, [item[key] for item in batch], lengths)
     if rest:
         out.update(default_collate([{key: item[key] for key in rest} for item in batch]))
     device = batch[0][frame_keys[0]].device  # the clips' device, as the padded keys

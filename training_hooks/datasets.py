@@ -212,6 +212,7 @@ from torchface.io.video import (
     open_frames,
 )
 from torchface.model.face_model import FaceModel
+from torchface.tracker.step import TrackerConfig
 from training_hooks.cache import CacheStats, TrackCache, cache_key, content_hash
 from training_hooks.transforms import FaceTrackingConfig, NormaliseFaces, TrackedSequence, _landmarks_shape_hint
 
@@ -824,7 +825,10 @@ class DatasetConfig:
 
     def __post_init__(self) -> None:
         if not isinstance(self.tracking, FaceTrackingConfig):
-            raise TypeError(f"tracking must be a FaceTrackingConfig, got {type(self.tracking).__name__}")
+            # (the tracker's own settings, one level down, were told the type alone)
+            hint = (", which goes inside it: FaceTrackingConfig(tracker=TrackerConfig(...))"
+                    if isinstance(self.tracking, TrackerConfig) else "")  # fmt: skip
+            raise TypeError(f"tracking must be a FaceTrackingConfig, got {type(self.tracking).__name__}{hint}")
         for name in ("clip_length", "clip_stride"):
             object.__setattr__(self, name, check_optional_int(getattr(self, name), name, 1))
         if self.clip_stride is not None and self.clip_length is None:
@@ -1085,6 +1089,12 @@ class VideoDataset(IterableDataset):
         else:
             if isinstance(landmarks, (str, os.PathLike, np.ndarray, Tensor)) or not isinstance(landmarks, Sequence):
                 shape = f" of shape {tuple(landmarks.shape)}" if isinstance(landmarks, (np.ndarray, Tensor)) else ""
+                # (one video's points or file, not in a list, was told the type and shape alone)
+                single = isinstance(landmarks, (str, os.PathLike)) or isinstance(landmarks, (np.ndarray, Tensor)) and (
+                    tuple(landmarks.shape) in ((num_landmarks, 2), (2 * num_landmarks,)))  # fmt: skip
+                if single:
+                    shape += (": one video's, in a list: [landmarks]" if len(self.videos) == 1 else
+                              f": one video's? give one entry per video, a list of {len(self.videos)}")  # fmt: skip
                 raise TypeError(
                     f"landmarks must be a sequence with one {one} array/tensor or landmarks file per video, an "
                     f"(N, {one[1:]} stack of them, or a detector callable, got {type(landmarks).__name__}{shape}"

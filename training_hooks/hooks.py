@@ -13,6 +13,7 @@ Batches are dicts of batch-first tensors as the datasets and collates make them:
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple
@@ -77,12 +78,31 @@ def _valid(batch: Mapping[str, Any]) -> Tensor:
     return torch.ones_like(conf, dtype=torch.bool) if mask is None else mask.to(torch.bool)
 
 
+def _loss_shape_hint(loss: tuple[int, ...], confidence: tuple[int, ...]) -> str:
+    """How to make a ``loss`` of another shape than the ``confidence`` one :func:`confidence_weighted_loss` takes
+    ("" when nothing fits): a loss already reduced (a loss function's default ``reduction="mean"``), one per clip of
+    a clip batch, or a ``(B, 1)`` head's (they were told the shapes alone)."""
+    if loss == ():
+        return " (a scalar: compute the loss with reduction=\"none\", one per sample or frame)"
+    if len(confidence) == 2 and loss == confidence[:1]:
+        return (" (one loss per clip, the confidence per frame: weigh it by each clip's, sample_confidence(batch), "
+                "or compute a loss per frame)")
+    if loss == (*confidence, 1):
+        return " (a trailing 1: loss.squeeze(-1))"
+    return ""
+
+
 def confidence_weighted_loss(loss: Tensor, confidence: Tensor, mask: Tensor | None = None) -> Tensor:
     """Mean of a per-sample loss weighted by the tracker's confidence: ``sum c m l / sum c m``.
 
     The weights are detached (the confidence is data, not a parameter). An entry of weight zero (confidence 0,
-    or ``mask`` False, e.g. a padded frame) contributes exactly 0 to the value and the gradient, even where its
-    loss is NaN or inf; when every weight is zero the result is zero, still connected to the graph, never NaN.
+    or ``mask`` False, e.g. a padded frame) contributes exactly 0 to the value and to the gradient w.r.t. ``loss``,
+    even where its loss is NaN or inf; when every weight is zero the result is zero, still connected to the graph,
+    never NaN. What no loss function can undo is a NaN made before it: the backward of whatever computed a NaN loss
+    multiplies that 0 by NaN, and the network's gradients come out NaN (a padded or failed frame's face is black:
+    divided by its own standard deviation it is 0 / 0). A ``RuntimeWarning`` says so where ``loss`` has a graph and
+    is NaN or inf at an entry of weight zero: compute the loss of the real frames alone, or keep those inputs
+    finite.
     Under DDP each rank weighs its own batch, and DDP averages the ranks' gradients: the step follows the mean of
     the ranks' weighted means, not one weighted mean over every rank's samples.
 
@@ -112,6 +132,7 @@ def confidence_weighted_loss(loss: Tensor, confidence: Tensor, mask: Tensor | No
         got = tuple(mask.shape) if mask is not None else None
         raise ValueError(
             f"loss, confidence and mask must have one shape, got {tuple(loss.shape)}, {tuple(confidence.shape)}, {got}"
+            f"{_loss_shape_hint(tuple(loss.shape), tuple(confidence.shape))}"
         )
     # (on the loss's device: a batch's confidence stays on the CPU where a training loop moves its images alone)
     c = confidence.detach().to(device=loss.device, dtype=loss.dtype)
@@ -119,6 +140,18 @@ def confidence_weighted_loss(loss: Tensor, confidence: Tensor, mask: Tensor | No
         raise ValueError("confidence must be finite and in [0, 1]")
     if mask is not None:
         c = c * mask.to(device=c.device, dtype=c.dtype)
+    if loss.grad_fn is not None:  # (the parameters' gradients came out NaN without a word)
+        bad = int(((c <= 0) & ~torch.isfinite(loss.detach())).sum())
+        if bad:
+            warnings.warn(
+                f"confidence_weighted_loss: the loss is NaN or inf at {bad} of its {loss.numel()} entries of weight 0 "
+                "(padded, failed or zero-confidence frames): they add 0 to the value, but the backward of what made "
+                "them NaN gives NaN gradients upstream (0 * NaN). Compute the loss of the real frames alone (e.g. of "
+                "batch['face'][batch['frame_mask']]), or keep those inputs finite (a black padded face over its own "
+                "standard deviation is 0 / 0)",
+                RuntimeWarning,
+                stacklevel=2,
+            )
     # torch.where, not the product alone: 0 * NaN (a padded frame's 0 / 0 loss) would be NaN.
     weighted = torch.where(c > 0, loss * c, 0.0).sum()
     total = c.sum()

@@ -81,6 +81,7 @@ from torchface.tracker.step import (
     reference_levels,
     track_step,
 )
+from training_hooks.transforms import FaceTrackingConfig
 
 __all__ = [
     "LayerMode",
@@ -152,7 +153,12 @@ class LayerConfig:
         check_choice(self.mode, "mode", LayerMode)
         check_choice(self.start, "start", UnrollStart)
         if not isinstance(self.tracker, TrackerConfig):
-            raise TypeError(f"tracker must be a TrackerConfig, got {type(self.tracker).__name__}")
+            # (the datasets' FaceTrackingConfig, whose face size and expression setting are LayerConfig's own here,
+            # was told the type alone)
+            hint = ("; LayerConfig holds its tracker, size and keep_expression itself: LayerConfig(tracker=c.tracker, "
+                    "size=c.face_size, keep_expression=c.keep_expression)"
+                    if isinstance(self.tracker, FaceTrackingConfig) else "")  # fmt: skip
+            raise TypeError(f"tracker must be a TrackerConfig, got {type(self.tracker).__name__}{hint}")
         for name, low in (("size", 4), ("unrolled_iterations", 0), ("unrolled_levels", None)):
             object.__setattr__(self, name, check_int(getattr(self, name), name, low))
         for name in ("keep_expression", "normalise_light"):  # "no" was true

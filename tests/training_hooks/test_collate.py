@@ -78,6 +78,26 @@ def test_extra_per_frame_keys():
     assert out["au_label"].tolist() == [[1, 2, 0], [3, 4, 5]]
 
 
+def test_a_per_frame_key_left_out_is_named():
+    """A per-frame label of clips of different lengths, not in per_frame_keys, was default_collate's "stack expects
+    each tensor to be equal size, but got [2] at entry 0 and [3] at entry 1", naming no key."""
+    items = [dict(clip(2, 0), au_label=torch.tensor([1, 2])), dict(clip(3, 1), au_label=torch.tensor([3, 4, 5]))]
+    with pytest.raises(ValueError, match=r"'au_label' is batched per clip \(not a per-frame key\) but item 1 has "
+                       r"shape \(3,\), item 0 \(2,\): one value per frame\? .*PER_FRAME_KEYS, 'au_label'\)\)"):
+        collate_clips(items)
+    # the defaults replaced by the user's key alone: the face is then the key named
+    with pytest.raises(ValueError, match=r"'face' is batched per clip .* one value per frame\?"):
+        collate_clips(items, per_frame_keys=["au_label"])
+    # an array of another shape that is not per frame: named, without the hint
+    a, b = dict(clip(2, 0), emb=torch.zeros(4)), dict(clip(3, 1), emb=torch.zeros(5))
+    with pytest.raises(ValueError, match=r"'emb' is batched per clip \(not a per-frame key\) but item 1 has shape "
+                       r"\(5,\), item 0 \(4,\)$"):
+        collate_clips([a, b])
+    # equal lengths still batch without padding, as default_collate does
+    same = [dict(clip(3, 0), au_label=torch.tensor([1, 2, 3])), dict(clip(3, 1), au_label=torch.tensor([4, 5, 6]))]
+    assert collate_clips(same)["au_label"].tolist() == [[1, 2, 3], [4, 5, 6]]
+
+
 def test_pad_value():
     assert pad_value("frame", torch.zeros(2, dtype=torch.int64)).tolist() == [-1, -1]
     assert pad_value("status", torch.zeros(1, dtype=torch.int64)).tolist() == [2]

@@ -940,6 +940,23 @@ def test_landmarks_stacked_as_facetracker_takes_them_give_one_entry_per_video(cl
         VideoDataset(videos, stack[:1], cfg)
 
 
+def test_one_videos_landmarks_not_in_a_list_are_told_the_list(clips, config, tmp_path):
+    """One video's (68, 2) points, its (136,) row or its landmarks file, given without the list, were told the type
+    (and shape) alone; the message now says to put it in a list."""
+    videos = [c.video for c in clips[:2]]
+    cfg = replace(config, cache_dir=None)
+    lm_file = tmp_path / "a.npy"
+    np.save(lm_file, clips[0].landmarks)
+    for given in (clips[0].landmarks, torch.from_numpy(clips[0].landmarks).reshape(-1), str(lm_file), lm_file):
+        with pytest.raises(TypeError, match=r"got \w+( of shape \(\d+,( 2)?\))?: one video's, in a list: "
+                                            r"\[landmarks\]$"):
+            VideoDataset(videos[:1], given, cfg)
+        with pytest.raises(TypeError, match=r": one video's\? give one entry per video, a list of 2$"):
+            VideoDataset(videos, given, cfg)
+    with pytest.raises(TypeError, match=r"got int$"):  # (no hint where it is not one video's)
+        VideoDataset(videos[:1], 3, cfg)  # type: ignore[arg-type]
+
+
 def test_detector_landmarks_of_a_face_at_the_frame_edge_are_taken(clips, config):
     """dlib's predictor places the chin of a face at the frame's edge just outside it: a detector's landmarks may
     lie partly outside the frame (they were refused as a landmarks file's), not mostly."""

@@ -6,6 +6,7 @@ from __future__ import annotations
 import ast
 import math
 import re
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -98,6 +99,55 @@ def test_weighted_loss_zero_weight_entries_with_nan_loss_contribute_nothing():
     assert float(out.detach()) == 0.0
     out.backward()
     assert torch.equal(loss.grad, torch.zeros(2))
+
+
+def test_weighted_loss_warns_of_a_nan_loss_made_upstream_at_a_zero_weight_entry():
+    """A NaN loss at a padded frame made by the network (a black padded face standardised by its own std, 0 / 0)
+    adds 0 to the value, but its backward poisons the parameters' gradients with NaN: that went without a word."""
+    face = torch.rand(2, 3, 1, 4, 4)  # (B, T, C, S, S)
+    face[1, 2] = 0.0  # a padded frame: black
+    mask = torch.tensor([[True, True, True], [True, True, False]])
+    conf = torch.tensor([[0.9, 0.8, 0.7], [0.9, 0.9, 0.0]])
+    w = torch.ones(16, requires_grad=True)
+    x = face.flatten(2)
+    x = (x - x.mean(-1, keepdim=True)) / x.std(-1, keepdim=True)  # NaN on the black face
+    loss = (x * w).sum(-1) ** 2  # (2, 3), NaN at [1, 2]
+    with pytest.warns(RuntimeWarning, match=r"NaN or inf at 1 of its 6 entries of weight 0 .* real frames alone"):
+        out = confidence_weighted_loss(loss, conf, mask)
+    assert bool(torch.isfinite(out))
+    out.backward()
+    assert not bool(torch.isfinite(w.grad).all())  # what the warning is about
+    # the loss of the real frames alone: no warning, finite gradients
+    w.grad = None
+    x = face[mask].flatten(1)
+    x = (x - x.mean(-1, keepdim=True)) / x.std(-1, keepdim=True)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        confidence_weighted_loss((x * w).sum(-1) ** 2, conf[mask]).backward()
+        # a leaf loss (no upstream) and finite losses at zero weights say nothing
+        confidence_weighted_loss(torch.tensor([1.0, float("nan")], requires_grad=True), torch.tensor([1.0, 0.0]))
+        confidence_weighted_loss(loss.detach().nan_to_num() * w.sum(), conf, mask)
+    assert bool(torch.isfinite(w.grad).all())
+
+
+def test_weighted_loss_of_another_shape_is_told_how_to_make_it():
+    """A loss already reduced (cross_entropy's default reduction="mean"), one per clip of a clip batch and a (B, 1)
+    head's were told the shapes alone."""
+    conf, mask = torch.rand(4, 3), torch.ones(4, 3, dtype=torch.bool)
+    logits, y = torch.randn(4, 2), torch.tensor([0, 1, 0, 1])
+    with pytest.raises(ValueError, match=r"got \(\), \(4, 3\), \(4, 3\) \(a scalar: compute the loss with "
+                                         r'reduction="none", one per sample or frame\)$'):
+        confidence_weighted_loss(torch.nn.functional.cross_entropy(logits, y), conf, mask)
+    per_clip = torch.nn.functional.cross_entropy(logits, y, reduction="none")
+    with pytest.raises(ValueError, match=r"got \(4,\), \(4, 3\), \(4, 3\) \(one loss per clip, the confidence per "
+                                         r"frame: weigh it by each clip's, sample_confidence\(batch\), or compute"):
+        confidence_weighted_loss(per_clip, conf, mask)
+    batch = {"confidence": conf, "frame_mask": mask}
+    assert bool(torch.isfinite(confidence_weighted_loss(per_clip, sample_confidence(batch))))  # (the way named)
+    with pytest.raises(ValueError, match=r"got \(4, 1\), \(4,\), None \(a trailing 1: loss.squeeze\(-1\)\)$"):
+        confidence_weighted_loss(torch.rand(4, 1), conf[:, 0])
+    with pytest.raises(ValueError, match=r"got \(4, 2\), \(4, 3\), None$"):  # (nothing to say)
+        confidence_weighted_loss(torch.rand(4, 2), conf)
 
 
 def test_weighted_loss_bad_input():

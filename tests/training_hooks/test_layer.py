@@ -373,6 +373,24 @@ def test_a_device_this_machine_lacks_is_torchfaces_value_error(move, message):
     assert layer.model.dtype == torch.float32 and layer.layout.bary.device.type == "cpu"
 
 
+def test_a_config_one_level_off_is_told_where_it_goes():
+    """The datasets' FaceTrackingConfig given as LayerConfig's tracker, and a TrackerConfig as DatasetConfig's
+    tracking, were told the type alone."""
+    from training_hooks import DatasetConfig, FaceTrackingConfig
+
+    with pytest.raises(TypeError, match=r"^tracker must be a TrackerConfig, got FaceTrackingConfig; LayerConfig "
+                                        r"holds its tracker, size and keep_expression itself: LayerConfig\(tracker="
+                                        r"c.tracker, size=c.face_size, keep_expression=c.keep_expression\)$"):
+        LayerConfig(tracker=FaceTrackingConfig())  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match=r"^tracking must be a FaceTrackingConfig, got TrackerConfig, which goes inside "
+                                        r"it: FaceTrackingConfig\(tracker=TrackerConfig\(...\)\)$"):
+        DatasetConfig(tracking=TrackerConfig())  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match=r"^tracker must be a TrackerConfig, got str$"):
+        LayerConfig(tracker="fast")  # type: ignore[arg-type]
+    c = FaceTrackingConfig(face_size=48, keep_expression=True)  # (the way named)
+    assert LayerConfig(tracker=c.tracker, size=c.face_size, keep_expression=c.keep_expression).size == 48
+
+
 def test_exceptions(model, small):
     frames, state, _ = small
     with pytest.raises(TypeError):
