@@ -310,3 +310,19 @@ def test_draw_overlay_refuses_overlay_geometrys_batched_points_naming_the_shape(
     with pytest.raises(ValueError, match=r"axes_px must be \(4, 2\).*\(3, 2\)"):
         draw_overlay(img, verts[0], edges, axes[0, :3], 0.9, True)
     assert draw_overlay(img, verts[0], edges, axes[0], 0.9, True).any()  # one frame's tensors: drawn
+
+
+def test_plot_track_into_a_folder_not_made_is_an_output_error_naming_the_plot(tmp_path):
+    """A folder not made yet raised FileNotFoundError naming ``<stem>.partial.png``, a file the caller never named;
+    an OutputError (an OSError) names the plot asked for, as write_json names its file."""
+    from torchface.io import OutputError
+
+    cols, rows = _small_track()
+    target = tmp_path / "no such folder" / "my plot.png"
+    with pytest.raises(OutputError, match=r"my plot\.png: cannot write the plot \(No such file or directory\)") as e:
+        plot_track(cols, rows, target)
+    assert "partial" not in str(e.value) and not list(tmp_path.rglob("*partial*"))
+    (tmp_path / "folder.png").mkdir()  # a folder at the plot's name: its renaming failed, the temporary file left
+    with pytest.raises(OutputError, match=r"folder\.png: cannot write the plot"):
+        plot_track(cols, rows, tmp_path / "folder.png")
+    assert not list(tmp_path.glob("*partial*"))
