@@ -249,6 +249,10 @@ def read_track_csv(path: str | os.PathLike[str]) -> tuple[tuple[str, ...], np.nd
     such a file's columns are found by name. The file is read a line at a time into the array (it was read whole,
     and its rows held as lists of Python floats: about 9 times the array's size, 430 MB at the finalising of an
     hour's video at 30 frames/s).
+
+    Raises:
+        InputError: the file cannot be read (missing: where ``<path>.partial`` is there, the message says that its
+            run is not complete), is not a track CSV, or is damaged, naming it.
     """
     columns, data, _ = _read_csv(path)
     return columns, data
@@ -301,7 +305,11 @@ def _read_csv(path: str | os.PathLike[str]) -> tuple[tuple[str, ...], np.ndarray
     except UnicodeDecodeError:
         raise InputError(f"{p}: not a track CSV (not UTF-8 text)") from None
     except OSError as exc:  # (it said the exception's class alone: "(FileNotFoundError)", "(IsADirectoryError)")
-        raise InputError(f"{p}: cannot read the track CSV ({exc.strerror or exc.__class__.__name__})") from None
+        why = exc.strerror or exc.__class__.__name__
+        if isinstance(exc, FileNotFoundError) and partial_path(p).is_file():  # (a run under way or interrupted)
+            why += (f"; {partial_path(p).name} holds the rows of a run not complete, under way or interrupted: "
+                    "torchface track --resume completes it, read_track_csv reads its rows so far")
+        raise InputError(f"{p}: cannot read the track CSV ({why})") from None
     data = np.frombuffer(rows, dtype=np.float64) if rows else np.zeros(0)
     return columns, data.reshape(-1, len(columns)), end  # (a view of the rows read: no copy of them)
 
