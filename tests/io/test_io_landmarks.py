@@ -1018,3 +1018,25 @@ def test_mirror_landmarks_keeps_type_and_gradient_and_refuses_what_it_cannot_mir
             mirror_landmarks(a, bad)  # type: ignore[arg-type]
     with pytest.raises(TypeError, match="tensor or NumPy array"):
         mirror_landmarks(a.tolist(), 100)  # type: ignore[type-var]
+
+
+def test_points_transposed_a_row_of_x_and_a_row_of_y_are_refused_saying_so(tmp_path):
+    """``np.save(path, points.T)`` and ``np.savetxt(path, points.T)``, a row of x and a row of y, were refused with
+    the shape or the row width alone ("got an array of shape (2, 68)", "got rows of [68] values"); an array of 3D
+    points or of a set per frame is told what to take, in training_hooks' words (one rule, landmarks_shape_hint)."""
+    points = _points()
+    np.save(tmp_path / "t.npy", points.T)
+    np.savetxt(tmp_path / "t.csv", points.T, delimiter=",")
+    with pytest.raises(InputError, match=r"shape \(2, 68\) \(x, y rows: points\.T\)$"):
+        read_landmarks(tmp_path / "t.npy", 640, 480)
+    with pytest.raises(InputError, match=r"got rows of \[68\] values: a row of x and a row of y, the points "
+                                         r"transposed\? Write one 'x, y' row per point"):
+        read_landmarks(tmp_path / "t.csv", 640, 480)
+    np.save(tmp_path / "xyz.npy", np.column_stack([points, np.zeros(68)]))
+    with pytest.raises(InputError, match=r"shape \(68, 3\) \(x, y, z points, .*: points\[:, :2\]\)$"):
+        read_landmarks(tmp_path / "xyz.npy", 640, 480)
+    with pytest.raises(InputError, match=r"^lm: .*shape \(3, 68, 2\) \(a set per frame .*: points\[0\]\)$"):
+        check_landmarks(np.stack([points] * 3), 640, 480, "lm")  # the Python API's array: the same rule
+    np.savetxt(tmp_path / "three.csv", np.vstack([points.T, points.T[:1]]), delimiter=",")
+    with pytest.raises(InputError, match=r"got rows of \[68\] values$"):  # three rows: no such guess
+        read_landmarks(tmp_path / "three.csv", 640, 480)
