@@ -1040,3 +1040,23 @@ def test_points_transposed_a_row_of_x_and_a_row_of_y_are_refused_saying_so(tmp_p
     np.savetxt(tmp_path / "three.csv", np.vstack([points.T, points.T[:1]]), delimiter=",")
     with pytest.raises(InputError, match=r"got rows of \[68\] values$"):  # three rows: no such guess
         read_landmarks(tmp_path / "three.csv", 640, 480)
+
+
+def test_a_track_csv_given_as_landmarks_is_refused_naming_its_sidecar(tmp_path):
+    """``--landmarks results/clip.csv`` (the run's per-frame CSV, not its sidecar) was told "got rows of [62]
+    values", or, of a one-frame run, about one row's values: the message says it holds no landmarks and names the
+    JSON sidecar whose ``initial_landmarks_px`` a run can start from."""
+    from torchface.io import TrackCsvWriter, track_columns
+
+    cols = track_columns(("AUV11 Jaw drop",), ("AU26",), ("gain", "bias"))
+    for name, frames in (("clip.csv", 3), ("one.csv", 1)):
+        with TrackCsvWriter(tmp_path / name, cols) as w:
+            w.write(np.zeros((frames, len(cols))))
+        with pytest.raises(InputError, match=rf"{name}: a torchface track CSV, which holds no landmarks: give its "
+                                             rf"JSON sidecar \({name[:-4]}\.json\), whose initial_landmarks_px"):
+            read_landmarks(tmp_path / name, 640, 480)
+    w = TrackCsvWriter(tmp_path / "part.csv", cols)
+    w.write(np.zeros((2, len(cols))))
+    w.stop()
+    with pytest.raises(InputError, match=r"part\.csv\.partial: a torchface track CSV.*\(part\.json\)"):
+        read_landmarks(tmp_path / "part.csv.partial", 640, 480)
