@@ -441,3 +441,16 @@ def test_reading_the_csv_of_a_run_not_complete_says_its_partial_file_holds_the_r
     with pytest.raises(InputError, match=r"nope\.csv: cannot read the track CSV \(No such file or directory\)$"):
         read_track_csv(tmp_path / "nope.csv")  # no partial file: as before
     assert read_track_csv(tmp_path / "done.csv")[1].shape == (1, 4)
+
+
+def test_a_sidecar_read_as_a_track_csv_is_told_json_not_damage(tmp_path):
+    """A script given the run's ``clip.json`` rather than its ``clip.csv`` was told "line 2 is not a row of the track
+    CSV (2 cells, the header has 1): the file is damaged"."""
+    from torchface.io import write_json
+
+    write_json(tmp_path / "clip.json", {"frames": 3, "outputs": {"csv": "clip.csv"}})
+    (tmp_path / "list.json").write_text("[1, 2]\n")
+    for name in ("clip.json", "list.json"):
+        with pytest.raises(InputError, match=rf"{name}: not a track CSV but JSON text \(a run's sidecar\? its rows "
+                                             rf"are {name[:-5]}\.csv\)$"):
+            read_track_csv(tmp_path / name)

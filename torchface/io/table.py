@@ -275,6 +275,9 @@ def _read_csv(path: str | os.PathLike[str]) -> tuple[tuple[str, ...], np.ndarray
                 first = first[len(codecs.BOM_UTF8) :]
             if not first.endswith(b"\n") or first == b"\n":
                 raise InputError(f"{p}: not a track CSV (no complete header line)")
+            if first.lstrip()[:1] in (b"{", b"["):  # (a sidecar: "line 2 is not a row ...: the file is damaged")
+                csv_name = Path(p.name.removesuffix(".partial")).with_suffix(".csv").name
+                raise InputError(f"{p}: not a track CSV but JSON text (a run's sidecar? its rows are {csv_name})")
             columns = tuple(c.strip() for c in first[:-1].decode("utf-8").split(","))
             if offset == len(first) and first == (",".join(columns) + "\n").encode("utf-8"):
                 end = offset
