@@ -19,9 +19,9 @@ Columns (units; frames as in :mod:`torchface.conventions`)
   job's JSON records (``start.head_rotation``, ``start.head_translation``, after ``start.reanchored_at_frame``;
   :attr:`~torchface.tracker.TrackResult.rotation`);
 - ``AUxx_r`` (two digits, as OpenFace: ``AU02_r``): one column per FACS action unit linked to a CANDIDE-3
-  animation unit: the expression's intensity in
-  the animation unit's own scale (:meth:`~torchface.model.FaceModel.facs_values` of
-  :attr:`~torchface.tracker.TrackResult.expression`, measured from the first frame, which is taken as neutral);
+  animation unit: the expression's signed change in the animation unit's own scale, dimensionless, not OpenFace's
+  0-5 intensity (:meth:`~torchface.model.FaceModel.facs_values` of :attr:`~torchface.tracker.TrackResult.expression`,
+  measured from the first frame, which is taken as neutral);
 - ``anim_<name>``: one column per CANDIDE-3 animation unit, the model's coefficients
   (:attr:`~torchface.tracker.TrackResult.anim_coeffs`: dimensionless, the model file's scale; with the shape units
   they place the mesh, and they include the first frame's fitted coefficients);
