@@ -40,6 +40,7 @@ from torch import Tensor
 from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS
 from torchface.extending import check_bool, check_choice, check_int, check_no_tilde, check_number
 from torchface.geometry.camera import Intrinsics
+from torchface.io.landmarks import landmarks_shape_hint as _landmarks_shape_hint
 from torchface.io.landmarks import missing_points_problem, planar_layout_problem
 from torchface.model.candide import load_candide3
 from torchface.model.face_model import FaceModel
@@ -411,22 +412,6 @@ def _layout_hint(frames: Tensor) -> str:
     if frames.dim() == 5 and shape[2] in (1, 3):  # (a batch of clips was told its shape alone)
         return (" (a batch of clips (B, T, C, H, W)? NormaliseFaces takes one clip: frames[i] with its landmarks; "
                 "NormalisedFaceLayer.forward_clip takes a batch)")
-    return ""
-
-
-def _landmarks_shape_hint(shape: tuple[int, ...], count: int, name: str = "landmarks") -> str:
-    """What to do with first-frame landmarks of ``shape`` where ``(count, 2)`` was wanted ("" when nothing fits).
-
-    Example:
-        >>> _landmarks_shape_hint((2, 68), 68)
-        ' (x, y rows: landmarks.T)'
-    """
-    if shape == (2, count):
-        return f" (x, y rows: {name}.T)"
-    if shape == (count, 3):
-        return f" (x, y, z points, as 3D landmark detectors give them: {name}[:, :2])"
-    if len(shape) == 3 and shape[1:] == (count, 2) and shape[0] > 1:
-        return f" (a set per frame or per stream? one set, of the first frame: {name}[0])"
     return ""
 
 

@@ -1018,3 +1018,45 @@ def test_mirror_landmarks_keeps_type_and_gradient_and_refuses_what_it_cannot_mir
             mirror_landmarks(a, bad)  # type: ignore[arg-type]
     with pytest.raises(TypeError, match="tensor or NumPy array"):
         mirror_landmarks(a.tolist(), 100)  # type: ignore[type-var]
+
+
+def test_points_transposed_a_row_of_x_and_a_row_of_y_are_refused_saying_so(tmp_path):
+    """``np.save(path, points.T)`` and ``np.savetxt(path, points.T)``, a row of x and a row of y, were refused with
+    the shape or the row width alone ("got an array of shape (2, 68)", "got rows of [68] values"); an array of 3D
+    points or of a set per frame is told what to take, in training_hooks' words (one rule, landmarks_shape_hint)."""
+    points = _points()
+    np.save(tmp_path / "t.npy", points.T)
+    np.savetxt(tmp_path / "t.csv", points.T, delimiter=",")
+    with pytest.raises(InputError, match=r"shape \(2, 68\) \(x, y rows: points\.T\)$"):
+        read_landmarks(tmp_path / "t.npy", 640, 480)
+    with pytest.raises(InputError, match=r"got rows of \[68\] values: a row of x and a row of y, the points "
+                                         r"transposed\? Write one 'x, y' row per point"):
+        read_landmarks(tmp_path / "t.csv", 640, 480)
+    np.save(tmp_path / "xyz.npy", np.column_stack([points, np.zeros(68)]))
+    with pytest.raises(InputError, match=r"shape \(68, 3\) \(x, y, z points, .*: points\[:, :2\]\)$"):
+        read_landmarks(tmp_path / "xyz.npy", 640, 480)
+    with pytest.raises(InputError, match=r"^lm: .*shape \(3, 68, 2\) \(a set per frame .*: points\[0\]\)$"):
+        check_landmarks(np.stack([points] * 3), 640, 480, "lm")  # the Python API's array: the same rule
+    np.savetxt(tmp_path / "three.csv", np.vstack([points.T, points.T[:1]]), delimiter=",")
+    with pytest.raises(InputError, match=r"got rows of \[68\] values$"):  # three rows: no such guess
+        read_landmarks(tmp_path / "three.csv", 640, 480)
+
+
+def test_a_track_csv_given_as_landmarks_is_refused_naming_its_sidecar(tmp_path):
+    """``--landmarks results/clip.csv`` (the run's per-frame CSV, not its sidecar) was told "got rows of [62]
+    values", or, of a one-frame run, about one row's values: the message says it holds no landmarks and names the
+    JSON sidecar whose ``initial_landmarks_px`` a run can start from."""
+    from torchface.io import TrackCsvWriter, track_columns
+
+    cols = track_columns(("AUV11 Jaw drop",), ("AU26",), ("gain", "bias"))
+    for name, frames in (("clip.csv", 3), ("one.csv", 1)):
+        with TrackCsvWriter(tmp_path / name, cols) as w:
+            w.write(np.zeros((frames, len(cols))))
+        with pytest.raises(InputError, match=rf"{name}: a torchface track CSV, which holds no landmarks: give its "
+                                             rf"JSON sidecar \({name[:-4]}\.json\), whose initial_landmarks_px"):
+            read_landmarks(tmp_path / name, 640, 480)
+    w = TrackCsvWriter(tmp_path / "part.csv", cols)
+    w.write(np.zeros((2, len(cols))))
+    w.stop()
+    with pytest.raises(InputError, match=r"part\.csv\.partial: a torchface track CSV.*\(part\.json\)"):
+        read_landmarks(tmp_path / "part.csv.partial", 640, 480)

@@ -423,3 +423,34 @@ def test_a_partial_csv_with_other_line_ends_is_written_again_when_resumed(tmp_pa
             assert w.rows_done == 4
             w.write(rows[4:])
         assert (tmp_path / "v.csv").read_bytes() == (tmp_path / "ref.csv").read_bytes()
+
+
+def test_reading_the_csv_of_a_run_not_complete_says_its_partial_file_holds_the_rows(tmp_path):
+    """A script reading ``clip.csv`` while its run is under way, or after it was interrupted, was told "No such file
+    or directory" alone, though ``clip.csv.partial`` beside it held the rows: the message says so."""
+    cols = ("frame", "timestamp", "success", "confidence")
+    with TrackCsvWriter(tmp_path / "done.csv", cols) as w:
+        w.write(np.array([[0, 0.0, 1, 0.9]]))
+    w = TrackCsvWriter(tmp_path / "clip.csv", cols)
+    w.write(np.array([[0, 0.0, 1, 0.9], [1, 0.04, 1, 0.8]]))
+    w.stop()
+    with pytest.raises(InputError, match=r"clip\.csv: cannot read the track CSV \(No such file or directory; "
+                                         r"clip\.csv\.partial holds the rows of a run not complete.*--resume"):
+        read_track_csv(tmp_path / "clip.csv")
+    assert read_track_csv(tmp_path / "clip.csv.partial")[1].shape == (2, 4)
+    with pytest.raises(InputError, match=r"nope\.csv: cannot read the track CSV \(No such file or directory\)$"):
+        read_track_csv(tmp_path / "nope.csv")  # no partial file: as before
+    assert read_track_csv(tmp_path / "done.csv")[1].shape == (1, 4)
+
+
+def test_a_sidecar_read_as_a_track_csv_is_told_json_not_damage(tmp_path):
+    """A script given the run's ``clip.json`` rather than its ``clip.csv`` was told "line 2 is not a row of the track
+    CSV (2 cells, the header has 1): the file is damaged"."""
+    from torchface.io import write_json
+
+    write_json(tmp_path / "clip.json", {"frames": 3, "outputs": {"csv": "clip.csv"}})
+    (tmp_path / "list.json").write_text("[1, 2]\n")
+    for name in ("clip.json", "list.json"):
+        with pytest.raises(InputError, match=rf"{name}: not a track CSV but JSON text \(a run's sidecar\? its rows "
+                                             rf"are {name[:-5]}\.csv\)$"):
+            read_track_csv(tmp_path / name)

@@ -292,3 +292,37 @@ def test_plot_track_lays_out_without_tight_layout_and_everything_fits(tmp_path, 
     assert [line.get_label() for line in figures[-1].axes[1].get_lines()] == [
         "AU26_r = AU01_r = ... = AU15_r (16 columns)"]
     assert _what_does_not_fit(figures[-1]) == []
+
+
+def test_draw_overlay_refuses_overlay_geometrys_batched_points_naming_the_shape():
+    """overlay_geometry's ``(B, V, 2)`` and ``(B, 4, 2)`` passed as they come raised "IndexError: index 1 is out of
+    bounds for axis 0 with size 1" (B = 1), or drew edges between the streams' vertices (B > 1)."""
+    model = load_candide3()
+    intr = Intrinsics.default(160, 120)
+    shape, anim = torch.zeros(1, model.num_shape), torch.zeros(1, model.num_animation)
+    t = torch.tensor([[0.0, 0.0, 500.0]])
+    verts, axes = overlay_geometry(model, shape, anim, torch.eye(3)[None], t, intr)
+    img, edges = np.zeros((120, 160, 3), np.uint8), mesh_edges(model.faces)
+    with pytest.raises(ValueError, match=r"verts_px must be \(V, 2\).*\(1, 113, 2\).*take \[b\]"):
+        draw_overlay(img, verts, edges, axes[0], 0.9, True)
+    with pytest.raises(ValueError, match=r"axes_px must be \(4, 2\).*\(1, 4, 2\).*take \[b\]"):
+        draw_overlay(img, verts[0], edges, axes, 0.9, True)
+    with pytest.raises(ValueError, match=r"axes_px must be \(4, 2\).*\(3, 2\)"):
+        draw_overlay(img, verts[0], edges, axes[0, :3], 0.9, True)
+    assert draw_overlay(img, verts[0], edges, axes[0], 0.9, True).any()  # one frame's tensors: drawn
+
+
+def test_plot_track_into_a_folder_not_made_is_an_output_error_naming_the_plot(tmp_path):
+    """A folder not made yet raised FileNotFoundError naming ``<stem>.partial.png``, a file the caller never named;
+    an OutputError (an OSError) names the plot asked for, as write_json names its file."""
+    from torchface.io import OutputError
+
+    cols, rows = _small_track()
+    target = tmp_path / "no such folder" / "my plot.png"
+    with pytest.raises(OutputError, match=r"my plot\.png: cannot write the plot \(No such file or directory\)") as e:
+        plot_track(cols, rows, target)
+    assert "partial" not in str(e.value) and not list(tmp_path.rglob("*partial*"))
+    (tmp_path / "folder.png").mkdir()  # a folder at the plot's name: its renaming failed, the temporary file left
+    with pytest.raises(OutputError, match=r"folder\.png: cannot write the plot"):
+        plot_track(cols, rows, tmp_path / "folder.png")
+    assert not list(tmp_path.glob("*partial*"))

@@ -74,7 +74,10 @@ from torchface.conventions import (
 )
 from torchface.io.errors import InputError
 
-__all__ = ["NUM_LANDMARKS", "read_landmarks", "check_landmarks", "missing_points_problem", "mirror_landmarks"]
+__all__ = [
+    "NUM_LANDMARKS", "read_landmarks", "check_landmarks", "landmarks_shape_hint", "missing_points_problem",
+    "mirror_landmarks",
+]
 
 #: Points in the iBUG-68 scheme.
 NUM_LANDMARKS: int = 68
@@ -501,6 +504,10 @@ def _parse_csv_as(p: Path, text: str, comma: bool, count: int = NUM_LANDMARKS) -
     # leaves beyond the row's width: the header's where it names the cells (OpenFace's, x_k / y_k), else one row of
     # 136 or rows of 2 (``x,y,``: x and y; under a header of other words, a title or ``x,y,note``, as without one).
     names = _trimmed(_cells(header, comma), 0) if header is not None else []
+    if {"frame", "pose_Tx", "yaw_deg"} <= set(names):  # (``--landmarks results/clip.csv``: "got rows of [62] values")
+        sidecar = Path(p.name.removesuffix(".partial")).with_suffix(".json").name
+        raise InputError(f"{p}: a torchface track CSV, which holds no landmarks: give its JSON sidecar ({sidecar}), "
+                         "whose initial_landmarks_px are the landmarks its run started from")  # fmt: skip
     if len(data) == 1:  # one row of 136 with a column before it left empty (``,x0,y0,...``): that column is no cell
         cells, names = _one_row_values(p, data[0], names, count)
         data = [cells]
@@ -523,8 +530,11 @@ def _parse_csv_as(p: Path, text: str, comma: bool, count: int = NUM_LANDMARKS) -
         return values.reshape(-1, 2) if len(rows[0]) % 2 == 0 else np.asarray(rows[0])
     widths = {len(r) for r in rows}
     if len(widths) > 1 or (rows and len(rows[0]) != 2):
+        # (two rows of ``count``: the points transposed, ``np.savetxt(path, points.T)``, told as any other width)
+        hint = (f": a row of x and a row of y, the points transposed? Write one 'x, y' row per point (np.savetxt "
+                f"of the ({count}, 2) points, not of points.T)") if len(rows) == 2 and widths == {count} else ""
         raise InputError(f"{p}: expected rows of 'x, y' (or, one row per point, a header naming ibug_index, x and y "
-                         f"columns), got rows of {sorted(widths)} values")  # fmt: skip
+                         f"columns), got rows of {sorted(widths)} values{hint}")  # fmt: skip
     points = np.asarray(rows, dtype=np.float64).reshape(-1, 2)
     # a header naming the columns ``y, x`` (image coordinates as (row, column): ``DataFrame(points[:, ::-1],
     # columns=["y", "x"]).to_csv(index=False)``) says which is which: they were read as x, y, the face transposed
@@ -694,6 +704,23 @@ def mirror_landmarks(landmarks_px: _Points, width: int) -> _Points:
     return torch.stack([x, y], dim=-1)
 
 
+def landmarks_shape_hint(shape: tuple[int, ...], count: int, name: str = "landmarks") -> str:
+    """What to do with landmarks of ``shape`` where ``(count, 2)`` was wanted, as `` (...)`` ("" when nothing fits):
+    :func:`check_landmarks`' and ``training_hooks``' words for the points transposed, 3D points or a set per frame.
+
+    Example:
+        >>> landmarks_shape_hint((2, 68), 68)
+        ' (x, y rows: landmarks.T)'
+    """
+    if shape == (2, count):
+        return f" (x, y rows: {name}.T)"
+    if shape == (count, 3):
+        return f" (x, y, z points, as 3D landmark detectors give them: {name}[:, :2])"
+    if len(shape) == 3 and shape[1:] == (count, 2) and shape[0] > 1:
+        return f" (a set per frame or per stream? one set, of the first frame: {name}[0])"
+    return ""
+
+
 def check_landmarks(
     points: np.ndarray, width: int, height: int, where: str, *, min_inside: float = 1.0, missing: bool = False,
     missing_as: str = "", count: int = NUM_LANDMARKS,
@@ -737,8 +764,9 @@ def check_landmarks(
         if planar is not None:
             raise InputError(f"{where}: {planar}")
         points = points.reshape(-1, 2)
-    if points.ndim != 2 or points.shape[1] != 2:
-        raise InputError(f"{where}: expected {count} (x, y) points, got an array of shape {points.shape}")
+    if points.ndim != 2 or points.shape[1] != 2:  # ((2, K) was told its shape alone: np.save(path, points.T))
+        hint = landmarks_shape_hint(points.shape, count, "points")
+        raise InputError(f"{where}: expected {count} (x, y) points, got an array of shape {points.shape}{hint}")
     if points.shape[0] != count:
         hint = f" (a missing point stays, as a NaN row{': ' + missing_as if missing_as else ''})" if missing else ""
         what = "iBUG landmarks" if count == NUM_LANDMARKS else "landmarks (the face model's)"

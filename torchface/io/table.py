@@ -19,9 +19,9 @@ Columns (units; frames as in :mod:`torchface.conventions`)
   job's JSON records (``start.head_rotation``, ``start.head_translation``, after ``start.reanchored_at_frame``;
   :attr:`~torchface.tracker.TrackResult.rotation`);
 - ``AUxx_r`` (two digits, as OpenFace: ``AU02_r``): one column per FACS action unit linked to a CANDIDE-3
-  animation unit: the expression's intensity in
-  the animation unit's own scale (:meth:`~torchface.model.FaceModel.facs_values` of
-  :attr:`~torchface.tracker.TrackResult.expression`, measured from the first frame, which is taken as neutral);
+  animation unit: the expression's signed change in the animation unit's own scale, dimensionless, not OpenFace's
+  0-5 intensity (:meth:`~torchface.model.FaceModel.facs_values` of :attr:`~torchface.tracker.TrackResult.expression`,
+  measured from the first frame, which is taken as neutral);
 - ``anim_<name>``: one column per CANDIDE-3 animation unit, the model's coefficients
   (:attr:`~torchface.tracker.TrackResult.anim_coeffs`: dimensionless, the model file's scale; with the shape units
   they place the mesh, and they include the first frame's fitted coefficients);
@@ -249,6 +249,10 @@ def read_track_csv(path: str | os.PathLike[str]) -> tuple[tuple[str, ...], np.nd
     such a file's columns are found by name. The file is read a line at a time into the array (it was read whole,
     and its rows held as lists of Python floats: about 9 times the array's size, 430 MB at the finalising of an
     hour's video at 30 frames/s).
+
+    Raises:
+        InputError: the file cannot be read (missing: where ``<path>.partial`` is there, the message says that its
+            run is not complete), is not a track CSV, or is damaged, naming it.
     """
     columns, data, _ = _read_csv(path)
     return columns, data
@@ -271,6 +275,9 @@ def _read_csv(path: str | os.PathLike[str]) -> tuple[tuple[str, ...], np.ndarray
                 first = first[len(codecs.BOM_UTF8) :]
             if not first.endswith(b"\n") or first == b"\n":
                 raise InputError(f"{p}: not a track CSV (no complete header line)")
+            if first.lstrip()[:1] in (b"{", b"["):  # (a sidecar: "line 2 is not a row ...: the file is damaged")
+                csv_name = Path(p.name.removesuffix(".partial")).with_suffix(".csv").name
+                raise InputError(f"{p}: not a track CSV but JSON text (a run's sidecar? its rows are {csv_name})")
             columns = tuple(c.strip() for c in first[:-1].decode("utf-8").split(","))
             if offset == len(first) and first == (",".join(columns) + "\n").encode("utf-8"):
                 end = offset
@@ -301,7 +308,11 @@ def _read_csv(path: str | os.PathLike[str]) -> tuple[tuple[str, ...], np.ndarray
     except UnicodeDecodeError:
         raise InputError(f"{p}: not a track CSV (not UTF-8 text)") from None
     except OSError as exc:  # (it said the exception's class alone: "(FileNotFoundError)", "(IsADirectoryError)")
-        raise InputError(f"{p}: cannot read the track CSV ({exc.strerror or exc.__class__.__name__})") from None
+        why = exc.strerror or exc.__class__.__name__
+        if isinstance(exc, FileNotFoundError) and partial_path(p).is_file():  # (a run under way or interrupted)
+            why += (f"; {partial_path(p).name} holds the rows of a run not complete, under way or interrupted: "
+                    "torchface track --resume completes it, read_track_csv reads its rows so far")
+        raise InputError(f"{p}: cannot read the track CSV ({why})") from None
     data = np.frombuffer(rows, dtype=np.float64) if rows else np.zeros(0)
     return columns, data.reshape(-1, len(columns)), end  # (a view of the rows read: no copy of them)
 

@@ -110,20 +110,30 @@ def draw_overlay(
             residual confidence of a tracker without template management).
         unusable_label: the word drawn after the confidence when ``success`` is False: ``"LOST"`` (status 3) or
             ``"FAILED"`` (status 2: no usable estimate this frame, the previous one drawn).
+
+    Raises:
+        ValueError: ``image_bgr`` is not ``(H, W, 3)`` uint8, or ``verts_px`` / ``axes_px`` are not one frame's
+            ``(V, 2)`` / ``(4, 2)`` (:func:`overlay_geometry`'s batched ``(B, V, 2)``: take ``[b]``).
     """
     if image_bgr.ndim != 3 or image_bgr.shape[2] != 3 or image_bgr.dtype != np.uint8:
         raise ValueError(f"image_bgr must be (H, W, 3) uint8, got {image_bgr.shape} {image_bgr.dtype}")
+    v = np.asarray(verts_px, dtype=np.float64)
+    a = np.asarray(axes_px, dtype=np.float64)
+    # (overlay_geometry's batched (B, V, 2) and (B, 4, 2) given as they come: "IndexError: index 1 is out of bounds
+    # for axis 0 with size 1", or, with B > 1, the edges drawn between the streams' vertices)
+    for name, x, n in (("verts_px", v, "V"), ("axes_px", a, "4")):
+        if x.ndim != 2 or x.shape[1] != 2 or (n == "4" and x.shape[0] != 4):
+            one = " (one frame's: overlay_geometry's gives (B, ...), take [b])" if x.ndim == 3 else ""
+            raise ValueError(f"{name} must be ({n}, 2) pixels, got shape {x.shape}{one}")
     out = image_bgr.copy()
     H, W = out.shape[:2]
     limit = 4.0 * max(H, W)
-    v = np.asarray(verts_px, dtype=np.float64)
     ends = v[edges]  # (E, 2, 2)
     # (a non-finite end used to become a corner far off the image, and its edge a line across it)
     lines = np.round(np.clip(ends[np.isfinite(ends).all(axis=(1, 2))], -limit, limit)).astype(np.int32)
     colour = (80, 255, 80) if success else (160, 160, 160)
     if len(lines):
         cv2.polylines(out, list(lines), isClosed=False, color=colour, thickness=1, lineType=cv2.LINE_AA)
-    a = np.asarray(axes_px, dtype=np.float64)
     for k, c in zip(range(1, 4), ((0, 0, 255), (0, 255, 0), (255, 0, 0))):
         if np.isfinite(a[0]).all() and np.isfinite(a[k]).all():
             cv2.line(out, _pt(a[0], limit), _pt(a[k], limit), c, 2, cv2.LINE_AA)

@@ -15,6 +15,7 @@ import numpy as np
 
 from torchface._names import name_tuple
 from torchface.geometry._checks import check_int
+from torchface.io.errors import OutputError
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
@@ -145,6 +146,7 @@ def plot_track(
     Raises:
         TypeError: ``columns`` is one string, or ``num_aus`` is not an int.
         ValueError: a column the plot needs is missing, or ``num_aus`` is negative.
+        OutputError: the file cannot be written (its folder missing, a full disk; an ``OSError``), naming ``path``.
     """
     columns = name_tuple(columns, "columns")
     num_aus = check_int(num_aus, "num_aus", 0)  # (-1 showed all AUs but one)
@@ -203,8 +205,15 @@ def plot_track(
             if not _fits(fig, list(axes), text, canvas.get_renderer()):
                 fig.tight_layout()
                 fig.savefig(tmp, dpi=100, format=fmt, **kwargs)
-        except BaseException:  # a full disk, an interruption: no partial file left behind
+        except OSError as exc:  # a full disk, a folder not made yet (the error named the temporary file alone:
+            tmp.unlink(missing_ok=True)  # "No such file or directory: '.../plot.partial.png'")
+            raise OutputError(f"{p}: cannot write the plot ({exc.strerror or exc})") from None
+        except BaseException:  # an interruption: no partial file left behind
             tmp.unlink(missing_ok=True)
             raise
-    os.replace(tmp, p)
+    try:
+        os.replace(tmp, p)
+    except OSError as exc:  # (a folder at the name: "IsADirectoryError: ... 'plot.partial.png' -> 'plot.png'")
+        tmp.unlink(missing_ok=True)
+        raise OutputError(f"{p}: cannot write the plot ({exc.strerror or exc})") from None
     return p
