@@ -814,7 +814,17 @@ def _frame_meshes(folder: Path) -> list[Path]:
     return [f for f in folder.glob("*.ply") if re.fullmatch(r"\d{6,}\.ply", f.name) and f.is_file()]
 
 
+#: Suffixes of files a run writes or reads: an output folder not made yet that ends in one (``--out results.csv``)
+#: is likely meant as a file, and is warned of (:func:`_check_out_dir`; made all the same: a folder may be so named).
+_FILE_SUFFIXES: frozenset[str] = frozenset(
+    (".csv", ".json", ".txt", ".mp4", ".avi", ".mkv", ".mov", ".mpg", ".png", ".jpg", ".jpeg", ".ply", ".obj", ".npy")
+)
+
+
 def _check_out_dir(out_dir: Path) -> None:
+    """Refuse an output folder that cannot be made or written (:class:`OutputError`), before anything is tracked;
+    make it where it is missing, with a ``UserWarning`` where its name ends in a file's suffix (``results.csv``: a
+    folder of that name was made without a word, each video's outputs inside it)."""
     a = dangling_link(out_dir)  # mkdir said only "File exists" (also for a link above the folder)
     if a is not None:
         where = "the output folder" if a == out_dir else f"a folder above {out_dir}"
@@ -822,6 +832,10 @@ def _check_out_dir(out_dir: Path) -> None:
     if out_dir.exists() and not out_dir.is_dir():
         raise OutputError(f"{out_dir}: the output folder is a file, not a folder")
     opencv_path(out_dir, OutputError)  # the videos are written by OpenCV
+    if out_dir.suffix.lower() in _FILE_SUFFIXES and not out_dir.exists():
+        warnings.warn(f"{out_dir}: the output folder's name ends in {out_dir.suffix}, as a file's: made as the "
+                      f"folder {out_dir}/, which gets each video's outputs (<stem>.csv, <stem>.json, ...), not one "
+                      "file", UserWarning, stacklevel=3)
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
     except OSError as exc:

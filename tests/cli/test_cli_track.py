@@ -2761,6 +2761,21 @@ def test_an_output_folder_that_is_a_file_or_a_dangling_link_says_so(clip, tmp_pa
     assert blocker.read_text() == "x" and not (tmp_path / "gone").exists()
 
 
+def test_an_output_folder_named_as_a_file_is_warned_of_and_made(clip, tmp_path, capsys):
+    """``--out results.csv`` made a folder ``results.csv`` without a word (a user expecting one CSV file found a
+    folder of a video's outputs). It is made, as a folder may be so named, with a one-line warning; an existing
+    folder of that name, or a folder's name, is not warned of."""
+    video, lm, _ = clip
+    for out, told in (("results.csv", True), ("results.csv", False), ("run.v2", False)):  # (the 2nd: it exists now)
+        rc = main(["track", str(video), "--landmarks", str(lm), "--out", str(tmp_path / out), "--quiet"])
+        err = capsys.readouterr().err
+        assert rc == 0 and (tmp_path / out / f"{video.stem}.csv").is_file(), err
+        said = [line for line in err.splitlines() if "the output folder's name ends in" in line]
+        assert len(said) == (1 if told else 0), err
+        if told:
+            assert said[0].startswith("torchface: warning:") and "ends in .csv, as a file's" in said[0], said
+
+
 @pytest.mark.skipif(sys.platform != "linux", reason="a file name that is not UTF-8 needs a Linux file system")
 def test_names_that_are_not_utf8_are_refused_not_a_crash(clip, tmp_path):
     """A video, an image of a folder or an output folder whose name is not valid UTF-8 (Latin-1 bytes; Python keeps
