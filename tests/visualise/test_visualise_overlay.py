@@ -310,6 +310,11 @@ def test_draw_overlay_refuses_overlay_geometrys_batched_points_naming_the_shape(
     with pytest.raises(ValueError, match=r"axes_px must be \(4, 2\).*\(3, 2\)"):
         draw_overlay(img, verts[0], edges, axes[0, :3], 0.9, True)
     assert draw_overlay(img, verts[0], edges, axes[0], 0.9, True).any()  # one frame's tensors: drawn
+    # a one-element confidence (TrackResult.confidence[b:b + 1]) met Tensor.__format__'s TypeError; a batch's is told
+    one = draw_overlay(img, verts[0], edges, axes[0], torch.tensor([0.9]), True)
+    assert np.array_equal(one, draw_overlay(img, verts[0], edges, axes[0], 0.9, True))
+    with pytest.raises(ValueError, match=r"confidence must be one frame's number, got Tensor of shape \(2,\)"):
+        draw_overlay(img, verts[0], edges, axes[0], torch.tensor([0.9, 0.8]), True)
 
 
 def test_plot_track_into_a_folder_not_made_is_an_output_error_naming_the_plot(tmp_path):

@@ -113,7 +113,8 @@ def draw_overlay(
 
     Raises:
         ValueError: ``image_bgr`` is not ``(H, W, 3)`` uint8, or ``verts_px`` / ``axes_px`` are not one frame's
-            ``(V, 2)`` / ``(4, 2)`` (:func:`overlay_geometry`'s batched ``(B, V, 2)``: take ``[b]``).
+            ``(V, 2)`` / ``(4, 2)`` (:func:`overlay_geometry`'s batched ``(B, V, 2)``: take ``[b]``), or
+            ``confidence`` is not one number (a one-element tensor or array is taken as its number).
     """
     if image_bgr.ndim != 3 or image_bgr.shape[2] != 3 or image_bgr.dtype != np.uint8:
         raise ValueError(f"image_bgr must be (H, W, 3) uint8, got {image_bgr.shape} {image_bgr.dtype}")
@@ -125,6 +126,12 @@ def draw_overlay(
         if x.ndim != 2 or x.shape[1] != 2 or (n == "4" and x.shape[0] != 4):
             one = " (one frame's: overlay_geometry's gives (B, ...), take [b])" if x.ndim == 3 else ""
             raise ValueError(f"{name} must be ({n}, 2) pixels, got shape {x.shape}{one}")
+    try:  # (a one-element tensor, TrackResult.confidence[b:b + 1], met Tensor.__format__'s TypeError at ".2f")
+        confidence = float(confidence)
+    except (TypeError, ValueError, RuntimeError):
+        shape = getattr(confidence, "shape", None)
+        raise ValueError(f"confidence must be one frame's number, got {type(confidence).__name__}"
+                         + (f" of shape {tuple(shape)} (a batch's: take [b])" if shape is not None else "")) from None
     out = image_bgr.copy()
     H, W = out.shape[:2]
     limit = 4.0 * max(H, W)
