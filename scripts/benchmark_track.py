@@ -134,6 +134,7 @@ def main() -> None:
     ap.add_argument("--reference", type=Path, help="another torchface checkout to run on the same clips")
     ap.add_argument("--cache", type=Path, default=ROOT / "out" / "bench", help="where the clips are kept")
     args = ap.parse_args()
+    args.cache = args.cache.resolve()  # (the runs' working folder is their output's: a relative clip was not found)
     sizes = [s for s in args.sizes.split(",") if s]
     if unknown := [s for s in sizes if s not in SIZES]:
         ap.error(f"--sizes: unknown {', '.join(unknown)} (known: {', '.join(SIZES)})")

@@ -378,6 +378,23 @@ def test_benchmark_track_shows_progress_per_run(tmp_path, capsys, monkeypatch):
     assert "640x480" in captured.out.splitlines()[-1]
 
 
+def test_benchmark_track_finds_a_relative_cache_from_its_runs_folder(tmp_path, capsys, monkeypatch):
+    """``--cache out/bench`` (relative) gave ``torchface: error: out/bench/...mp4: no such file or folder``: each run
+    works in its output's folder, where the relative clip path named nothing. The cache is taken as an absolute
+    path before the clips are named."""
+    track = _load("benchmark_track")
+    seen = []
+    monkeypatch.setattr(track, "_clips", lambda cache, count: seen.append(cache) or {
+        s: (cache / f"{s}.mp4", cache / "lm.csv") for s in track.SIZES})  # fmt: skip
+    monkeypatch.setattr(track, "_run", lambda checkout, video, lm, out: seen.append((video, lm)) or (2.0, 1.5, 80.0))
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(sys, "argv", ["benchmark_track.py", "--sizes", "640x480", "--repeats", "1", "--frames", "4",
+                                      "--cache", "out/bench"])  # fmt: skip
+    track.main()
+    capsys.readouterr()
+    assert seen[0] == tmp_path / "out" / "bench" and seen[1] == (seen[0] / "640x480.mp4", seen[0] / "lm.csv")
+
+
 def test_overlay_pngs_are_written_whole(tmp_path, capsys, monkeypatch):
     """overlay_landmarks.py wrote each PNG straight under its name: an interrupt mid-write left a truncated image
     there, among whole ones. Now each is written under a temporary name and renamed."""
