@@ -114,7 +114,10 @@ def _levels_for_face(size_px: float) -> int:
 
 def test_readme_defaults_are_the_code_defaults():
     """Defaults the README and docs/ quote (each quoted as they write it, so that a change of either side fails)."""
+    import inspect
+
     from torchface.job import JobConfig
+    from torchface.normalise import NormalisedFace
     from torchface.template import DissimilarityConfig, TemplateConfig
     from torchface.tracker import FaceTracker, FitConfig, LookaheadConfig, TrackerConfig
     from training_hooks import DatasetConfig, FaceTrackingConfig, LayerConfig, LayerMode, RankBalance
@@ -137,6 +140,11 @@ def test_readme_defaults_are_the_code_defaults():
         "on the 64 px normalised face": TemplateConfig().normalised_size == 64,
         "evenly lit face, 128×128": JobConfig(out_dir=".").normalised_size == 128,
         "`LayerMode.DETACHED` (parameters from the tracker, the\n  default)": LayerConfig().mode is LayerMode.DETACHED,
+        "by default all three give 128x128 faces": LayerConfig().size == FaceTrackingConfig().face_size == 128
+            and inspect.signature(NormalisedFace).parameters["size"].default == 128,
+        "that undo the\n  expression (`keep_expression=False` in": not LayerConfig().keep_expression
+            and not FaceTrackingConfig().keep_expression
+            and inspect.signature(NormalisedFace).parameters["keep_expression"].default is False,
         "`Backend.AUTO` (default)": TrackerConfig().backend.name == "AUTO",
         "`refine_first=LookaheadConfig()`, the default": JobConfig(out_dir=".").refine_first == LookaheadConfig(),
         "`DatasetConfig.rank_balance` is `RankBalance.PAD` by default": DatasetConfig().rank_balance is RankBalance.PAD,

@@ -561,10 +561,30 @@ _DATASET_NAN_PIXELS_HINT: str = (
 )
 
 
+#: How a ``.npy`` frame array is saved as the reader takes it, per problem :func:`torchface.io.format_problems` names
+#: (``a``: the ``(T, H, W[, C])`` array): an array's fix, where the ffmpeg command of :data:`_DATASET_CONVERT_HINT`
+#: suits a video file.
+_ARRAY_FIXES: tuple[tuple[str, str], ...] = (
+    ("grayscale", "np.repeat(a[..., None], 3, -1) for gray (T, H, W) frames (np.repeat(a, 3, -1) of (T, H, W, 1))"),
+    ("RGBA", "a[..., :3] for RGBA"),
+    ("16-bit", "(a / 65535).astype(np.float32) for 16-bit"),
+    ("odd size", "a[:, : a.shape[1] // 2 * 2, : a.shape[2] // 2 * 2] for an odd size"),
+)
+
+
+def _array_convert_hint(problems: str) -> str:
+    """The end of the message of a ``.npy`` array whose frames are ``problems`` (e.g. ``"grayscale, odd size
+    31x20"``): how to save it as 8-bit RGB ``(T, H, W, 3)`` frames, or ``DatasetConfig(convert=True)``."""
+    fixes = ", then ".join(f"a = {fix}" for word, fix in _ARRAY_FIXES if word in problems)
+    return (f"save the array as (T, H, W, 3) RGB frames of even height and width, uint8 or float in [0, 1]: "
+            f"np.save(path, a) after {fixes}; or set DatasetConfig(convert=True)")  # fmt: skip
+
+
 @contextmanager
-def _dataset_hint() -> Iterator[None]:
+def _dataset_hint(path: Path | None = None) -> Iterator[None]:
     """Re-raise :mod:`torchface.io`'s refusal of a grayscale, RGBA, 16-bit or odd-sized frame with the dataset's
-    setting in place of the command line's ``--convert``, and its refusal of a frame file's NaN pixels with what a
+    setting in place of the command line's ``--convert`` (of a ``.npy`` ``path``, how to save the array instead of
+    the ffmpeg command: :func:`_array_convert_hint`), and its refusal of a frame file's NaN pixels with what a
     dataset's user can do (:data:`_DATASET_NAN_PIXELS_HINT`)."""
     try:
         yield
@@ -574,7 +594,10 @@ def _dataset_hint() -> Iterator[None]:
             raise InputError(text[: -len(NAN_PIXELS_HINT) - 1] + _DATASET_NAN_PIXELS_HINT + ")") from None
         if not text.endswith(CONVERT_HINT):
             raise
-        raise InputError(text[: -len(CONVERT_HINT)] + _DATASET_CONVERT_HINT) from None
+        head = text[: -len(CONVERT_HINT)]
+        if path is not None and path.suffix.lower() == ".npy" and ": frames are " in head:
+            raise InputError(head + _array_convert_hint(head.rsplit(": frames are ", 1)[1])) from None
+        raise InputError(head + _DATASET_CONVERT_HINT) from None
 
 
 def _by_reference(detector: object) -> object:
@@ -1141,6 +1164,21 @@ class VideoDataset(IterableDataset):
                 f"{path}: VideoDataset takes video files or .npy arrays (use FrameFolderDataset for folders of frames)"
             )
 
+    def __repr__(self) -> str:
+        """The class, the number of videos (the first two named), where their first faces come from, and the settings
+        that shape an epoch: e.g. ``VideoDataset(3 videos (a.avi, b.avi, ...), landmarks, clip_length=8,
+        shuffle_buffer=64, epoch=2, face_size=128, keep_expression=False, cache_dir=None)`` (it was the object's
+        address)."""
+        c, n = self.config, len(self.videos)
+        names = ", ".join(v.name for v in self.videos[:2]) + (", ..." if n > 2 else "")
+        start = "landmarks" if self.detector is None else (
+            f"detector={getattr(self.detector, '__name__', type(self.detector).__name__)}")  # fmt: skip
+        cache = None if c.cache_dir is None else os.fspath(c.cache_dir)
+        return (f"{type(self).__name__}({n} video{'s' if n != 1 else ''} ({names}), {start}, "
+                f"clip_length={c.clip_length}, shuffle_buffer={c.shuffle_buffer}, epoch={self.epoch}, "
+                f"face_size={c.tracking.face_size}, keep_expression={c.tracking.keep_expression}, "
+                f"cache_dir={cache!r})")  # fmt: skip
+
     def __getitem__(self, index: int) -> dict[str, Tensor]:
         """Refused with a ``TypeError`` saying what to use (``data[0]`` was torch's "Subclasses of Dataset should
         implement __getitem__", a ``NotImplementedError`` that read as a bug of the dataset): each video is tracked
@@ -1321,7 +1359,7 @@ class VideoDataset(IterableDataset):
                 start = self._face_frame(index)  # (before the cache is asked: the key holds the detection)
                 frames = self._cached_frames(index)
                 if frames is None:
-                    with _dataset_hint():
+                    with _dataset_hint(self.videos[index]):
                         frames = _count_frames(self.videos[index], c.convert, self._frame_ticks(index, "decoded"))
                     frames -= start
             except (InputError, OSError) as exc:
@@ -1595,7 +1633,7 @@ class VideoDataset(IterableDataset):
         known = self._detection(index, content)
         if known is not None:
             return known[0]
-        with _dataset_hint():
+        with _dataset_hint(path):
             with open_frames(path, convert=self.config.convert) as reader:
                 return self._search(index, reader, content)[0]
 
@@ -1737,10 +1775,10 @@ class VideoDataset(IterableDataset):
                     check_landmarks(known[1], W, H, f"{path}: landmarks", missing=True, count=self.num_landmarks)
                 self.stats.videos += 1
                 return stored, True, None
-        with _dataset_hint():
+        with _dataset_hint(path):
             reader = open_frames(path, convert=self.config.convert)
         try:
-            with _dataset_hint():  # (a later frame's format is found as the search reads it)
+            with _dataset_hint(path):  # (a later frame's format is found as the search reads it)
                 start, first, landmarks = self._first_landmarks(index, reader, content)
             key = None
             if cache is not None:
@@ -1755,7 +1793,7 @@ class VideoDataset(IterableDataset):
             tick = self._frame_ticks(index, "tracked")
             if tick is not None:  # (the wait for the first item: :class:`_FirstItemProgress`)
                 frames = _ticking(frames, tick)
-            with _dataset_hint():  # (a later frame's format is found as it is read)
+            with _dataset_hint(path):  # (a later frame's format is found as it is read)
                 sequence, _ = self.transform.track(frames, landmarks)
             self.stats.tracking_s += time.perf_counter() - t0
         finally:

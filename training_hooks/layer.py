@@ -117,7 +117,10 @@ class LayerConfig:
 
     Attributes:
         mode: :class:`LayerMode`.
-        size: ``G``, the normalised face is ``G x G``.
+        size: ``G``, the normalised face is ``G x G``: 128 by default, the size of the datasets' items
+            (:attr:`FaceTrackingConfig.face_size <training_hooks.transforms.FaceTrackingConfig.face_size>`) and of
+            :class:`~torchface.normalise.NormalisedFace`'s, so that a network trained on one takes the others' faces
+            (the default was 64 before, half the datasets').
         margin: empty fraction around the face in the canonical view
             (:func:`~torchface.normalise.build_normalised_layout`).
         keep_expression: resample at the person's neutral expression (the first frame's fitted coefficients,
@@ -138,7 +141,7 @@ class LayerConfig:
     """
 
     mode: LayerMode = LayerMode.DETACHED
-    size: int = 64
+    size: int = 128
     margin: float = 0.05
     keep_expression: bool = False
     normalise_light: bool = True
@@ -184,7 +187,10 @@ class LayerResult:
     """What :class:`NormalisedFaceLayer` returns.
 
     Attributes:
-        image: ``(B, C, G, G)`` the normalised faces (0 where ``mask`` is 0); differentiable w.r.t. the frames.
+        image: ``(B, C, G, G)`` the normalised faces (0 where ``mask`` is 0); differentiable w.r.t. the frames, so
+            not clamped (the light normalisation can put a few values a little outside ``[0, 1]``, where a clamp would
+            zero the gradient): the datasets' items are clamped to ``[0, 1]`` and rounded to ``1 / 255`` by default
+            (``FaceStorage.UINT8``); ``image.clamp(0, 1)`` gives a network trained on them the range it saw.
         mask: ``(B, 1, G, G)`` float, 1 where the canonical point is visible (not differentiable).
         params: ``(B, P)`` the parameters the faces were resampled with (in the graph in ``UNROLLED`` mode).
         state: the detached tracker state after this frame (pass it with the next frame).

@@ -96,9 +96,13 @@ class FaceTrackingConfig:
     Attributes:
         tracker: the tracker's settings (:class:`~torchface.tracker.TrackerConfig`; CANDIDE-3 with its 11
             animation units, float32).
-        face_size: ``S``, the normalised face is ``S x S`` (at least 16).
+        face_size: ``S``, the normalised face is ``S x S`` (at least 16; 128, as
+            :attr:`LayerConfig.size <training_hooks.layer.LayerConfig.size>` and
+            :class:`~torchface.normalise.NormalisedFace`'s ``size`` by default).
         face_margin: fraction of ``S`` left around the face (:func:`~torchface.normalise.build_normalised_layout`).
-        face_storage: :class:`FaceStorage` of the faces.
+        face_storage: :class:`FaceStorage` of the faces (``UINT8``: clamped to ``[0, 1]``; the float faces of
+            :class:`~training_hooks.layer.NormalisedFaceLayer` and :class:`~torchface.normalise.NormalisedFace` are
+            not clamped, to keep their gradient: ``image.clamp(0, 1)`` gives them this range).
         focal: focal length in pixels of the frames' camera; ``None`` is ``max(W, H)``
             (:meth:`~torchface.geometry.camera.Intrinsics.default`).
         num_threads: torch threads while tracking (restored afterwards). A fixed count makes the results

@@ -148,6 +148,18 @@ def test_frontal_matches_direct_layout_render(layout, layout_render, frontal):
     assert _mad(out.image[0], layout_render.image[0], mask) < 0.03
 
 
+def _moving_region(model, layout, unit, *faces):
+    """The triangles ``(F,)`` that animation unit ``unit`` moves, and the canonical pixels ``(G, G)`` on them that
+    every one of ``faces`` (normalised face results) sees: the mouth region of the jaw drop."""
+    moving_faces = (model.animation_units[unit].norm(dim=-1) > 0)[model.faces].any(-1)  # (F,)
+    region = torch.zeros(G * G, dtype=torch.bool)
+    region[layout.pixel_index[moving_faces[layout.face_index]]] = True
+    region = region.reshape(G, G)
+    for face in faces:
+        region = region & (face.mask[0, 0] > 0)
+    return moving_faces, region
+
+
 def test_expression_is_undone(model, subject, layout, frontal):
     """A jaw-drop frame sampled at its own expression matches the neutral normalised face in the mouth."""
     _, neutral = frontal
@@ -159,11 +171,7 @@ def test_expression_is_undone(model, subject, layout, frontal):
     aa = torch.zeros(1, 3)
     right = normalised_face(rendered.image, model, layout, sigma, alpha, aa, T_FRONT, None, CAM)
     wrong = normalised_face(rendered.image, model, layout, sigma, torch.zeros_like(alpha), aa, T_FRONT, None, CAM)
-    # The mouth region: canonical pixels on triangles the jaw drop moves.
-    moving_faces = (model.animation_units[jaw].norm(dim=-1) > 0)[model.faces].any(-1)  # (F,)
-    region = torch.zeros(G * G, dtype=torch.bool)
-    region[layout.pixel_index[moving_faces[layout.face_index]]] = True
-    region = region.reshape(G, G) & (neutral.mask[0, 0] > 0) & (right.mask[0, 0] > 0) & (wrong.mask[0, 0] > 0)
+    moving_faces, region = _moving_region(model, layout, jaw, neutral, right, wrong)
     assert region.sum() > 100
     err_right = _mad(right.image[0], neutral.image[0], region)
     err_wrong = _mad(wrong.image[0], neutral.image[0], region)
@@ -175,6 +183,47 @@ def test_expression_is_undone(model, subject, layout, frontal):
     assert err_right < 0.03
     assert err_right < 0.3 * err_wrong
     assert err_right < 0.3 * err_raw
+
+
+def test_keep_expression_resamples_a_state_at_the_persons_neutral(model, subject, layout, frontal):
+    """``NormalisedFace(keep_expression=True)`` resamples a TrackerState's frame at the person's neutral
+    (``state.neutral_anim_coeffs``), as ``LayerConfig(keep_expression=True)`` and ``torchface track
+    --keep-expression`` do: a jaw-drop frame's face keeps the open jaw where the expression-free face shows the
+    neutral frame's mouth. It had no such option: a user split ``state.params`` by hand (``ParamLayout(A, 5)``)."""
+    from torchface.tracker.step import TrackerState, TrackResult
+    from training_hooks import LayerConfig, NormalisedFaceLayer
+
+    _, neutral_face = frontal
+    sigma, aa = subject.shape_coeffs[None], torch.zeros(1, 3)
+    jaw = model.animation_names.index("AUV11 Jaw drop")
+    alpha = torch.zeros(1, model.num_animation)
+    alpha[0, jaw] = 1.0
+    frame = _render(subject, sigma, alpha, aa, T_FRONT).image
+    person = torch.zeros(1, model.num_animation)  # the person's neutral (the first frame's fit): not zero
+    person[0, model.animation_names.index("AUV5 Outer brow raiser")] = 0.05
+    light = torch.zeros(1, 5)
+    state = TrackerState(torch.cat([aa, T_FRONT, alpha, light], -1), sigma, (), CAM, 1, anim_prior_mean=person)
+    kept = NormalisedFace(model, size=G, keep_expression=True)(frame, state)
+    plain = NormalisedFace(model, size=G)(frame, state)
+    assert torch.equal(kept.image, normalised_face(frame, model, layout, sigma, person, aa, T_FRONT, light, CAM).image)
+    layer = NormalisedFaceLayer(LayerConfig(size=G, keep_expression=True), model)
+    assert torch.equal(kept.image, layer.normalise(frame, state, state.params).image)  # the layer's path, to the bit
+    _, region = _moving_region(model, layout, jaw, neutral_face, kept, plain)
+    assert region.sum() > 100
+    assert _mad(plain.image[0], neutral_face.image[0], region) < 0.03  # the expression undone
+    assert _mad(kept.image[0], neutral_face.image[0], region) > 0.06  # the open jaw kept
+    zeros = torch.zeros(1)
+    result = TrackResult(
+        rotation=axis_angle_to_matrix(aa), axis_angle=aa, translation=T_FRONT, ypr_deg=torch.zeros(1, 3),
+        anim_coeffs=alpha, anim_names=model.animation_names, expression=alpha - person,
+        facs=model.facs_values(alpha), facs_names=model.facs_names, illumination=light,
+        illumination_names=("g", "b", "x", "y", "z"), status=zeros.long(), iterations=zeros.long(), cost=zeros,
+        num_points=zeros.long(), confidence=zeros,
+    )  # fmt: skip
+    with pytest.raises(ValueError, match=r"a TrackResult does not hold: pass the tracker's state"):
+        NormalisedFace(model, size=G, keep_expression=True)(frame, result, sigma, CAM)
+    with pytest.raises(TypeError, match="keep_expression"):
+        NormalisedFace(model, size=G, keep_expression="no")  # type: ignore[arg-type]
 
 
 def test_light_is_undone(model, subject, layout, frontal):

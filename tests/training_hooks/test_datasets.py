@@ -765,6 +765,50 @@ def test_a_missing_path_starting_with_an_unexpandable_tilde_is_told_so(tmp_path,
         FrameFolderDataset([tmp_path / "clip"], ["~/no_such.csv"])
 
 
+def test_a_gray_array_is_told_how_to_save_it_as_rgb_not_an_ffmpeg_command(clips, config, tmp_path):
+    """A grayscale ``.npy`` clip was told to convert it with ffmpeg (``-i in.mp4``), a video file's remedy: an array
+    is told how to save it as the reader takes it, and that fix reads (and ``DatasetConfig(convert=True)`` still)."""
+    gray = read_video_uint8(clips[0].video).float().mean(1).round().to(torch.uint8).numpy()  # (T, H, W)
+    np.save(tmp_path / "gray.npy", gray)
+    np.save(tmp_path / "gray1.npy", gray[:, :-1, :, None])  # (T, H - 1, W, 1): gray and an odd height
+    lm = [clips[0].landmarks]
+    cfg = replace(config, cache_dir=None)
+    odd = "then a = a[:, : a.shape[1] // 2 * 2"
+    for name, fixes in (("gray.npy", ["np.repeat(a[..., None], 3, -1)"]),
+                        ("gray1.npy", ["np.repeat(a, 3, -1) of (T, H, W, 1)", odd])):  # fmt: skip
+        for run in (lambda: VideoDataset([tmp_path / name], lm, cfg).num_items(0),
+                    lambda: list(VideoDataset([tmp_path / name], lm, cfg))):  # fmt: skip
+            with pytest.raises(InputError, match="grayscale") as info:
+                run()
+            text = str(info.value)
+            assert "ffmpeg" not in text and "in.mp4" not in text and "DatasetConfig(convert=True)" in text, text
+            assert all(fix in text for fix in fixes), text
+            assert "16-bit" not in text.split("frames are", 1)[1] and "RGBA" not in text, text  # (its own fixes only)
+    np.save(tmp_path / "rgb.npy", np.repeat(gray[..., None], 3, -1))  # the fix as told
+    assert VideoDataset([tmp_path / "rgb.npy"], lm, cfg).num_items(0) == gray.shape[0]
+
+
+def test_repr_names_the_videos_and_the_epochs_settings(clips, config, tmp_path):
+    """``print(data)`` showed ``<training_hooks.datasets.VideoDataset object at 0x...>``."""
+    lm = [c.landmarks for c in clips]
+    cfg = replace(config, clip_length=4, shuffle_buffer=16)
+    data = VideoDataset([c.video for c in clips], lm, cfg)
+    data.set_epoch(2)
+    names = ", ".join(c.video.name for c in clips[:2])
+    assert repr(data) == (
+        f"VideoDataset(3 videos ({names}, ...), landmarks, clip_length=4, shuffle_buffer=16, epoch=2, "
+        f"face_size={cfg.tracking.face_size}, keep_expression=False, cache_dir={os.fspath(cfg.cache_dir)!r})"
+    )
+    one = VideoDataset([clips[0].video], lm[:1], replace(cfg, cache_dir=None, clip_length=None))
+    assert repr(one).startswith(f"VideoDataset(1 video ({clips[0].video.name}), landmarks, clip_length=None, ")
+    assert str(one) == repr(one) and repr(one).endswith("cache_dir=None)")
+    frames = read_video_uint8(clips[0].video)
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    cv2.imwrite(str(folder / "000.png"), frames[0].permute(1, 2, 0).numpy()[..., ::-1])
+    assert repr(FrameFolderDataset([folder], lm[:1], cfg)).startswith("FrameFolderDataset(1 video (frames), landmarks")
+
+
 def test_a_frame_to_convert_names_the_datasets_setting(clips, config, tmp_path):
     """Grayscale frames (a first one, a later one, or counted under DDP) are refused with the dataset's way out,
     DatasetConfig(convert=True): the message told a Python user to "pass --convert", the command line's flag."""

@@ -391,6 +391,16 @@ def test_a_config_one_level_off_is_told_where_it_goes():
     assert LayerConfig(tracker=c.tracker, size=c.face_size, keep_expression=c.keep_expression).size == 48
 
 
+def test_default_size_is_the_datasets_and_the_normalisers():
+    """The layer's faces are the datasets' items' size and ``NormalisedFace``'s by default (128): a network trained
+    on the items and run on the layer's faces got 64x64 faces (LayerConfig.size was 64)."""
+    from torchface.normalise import NormalisedFace
+
+    layer = NormalisedFaceLayer()
+    assert LayerConfig().size == FaceTrackingConfig().face_size == 128
+    assert layer.layout.size == NormalisedFace(layer.model).layout.size == 128
+
+
 def test_exceptions(model, small):
     frames, state, _ = small
     with pytest.raises(TypeError):

@@ -66,7 +66,7 @@ from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS, remove_ill
 from torchface.appearance.sampling import sample_at_pixels
 from torchface.backend import Backend, use_native
 from torchface.conventions import NEAR_PLANE_MM
-from torchface.geometry._checks import check_int, check_intrinsics, check_number
+from torchface.geometry._checks import check_bool, check_int, check_intrinsics, check_number
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.mesh import vertex_normals_and_backfacing
 from torchface.geometry.projection import project_points
@@ -749,12 +749,26 @@ class NormalisedFace(DeviceCheckedModule):
         distance_mm: see :func:`build_normalised_layout`.
         depth_tolerance: see :func:`normalised_face`.
         min_facing_cos: see :func:`normalised_face`.
+        keep_expression: resample a :class:`~torchface.tracker.TrackerState`'s frames at the person's neutral
+            expression (:meth:`~torchface.tracker.TrackerState.neutral_anim_coeffs`, the first frame's fitted
+            coefficients) instead of the tracked one, so the face keeps its expression with pose and light undone
+            (the resampling of ``torchface track --keep-expression``, ``training_hooks``'
+            ``FaceTrackingConfig(keep_expression=True)`` and ``LayerConfig(keep_expression=True)``): what an
+            expression classifier needs. False (the default) undoes the expression too (paper Section 4). A
+            :class:`~torchface.tracker.TrackResult` holds no neutral: with it, a ValueError (pass the state).
+            :meth:`from_params` resamples at the ``anim_coeffs`` it is given either way.
+
+    The faces are float images of the model's dtype, 0 where the mask is 0, and not clamped (the light
+    normalisation can put a few values a little outside ``[0, 1]``; clamping would zero their gradient w.r.t. the
+    frames): ``training_hooks``' datasets store them clamped to ``[0, 1]`` and rounded to ``1 / 255`` by default
+    (``FaceStorage.UINT8``), and ``image.clamp(0, 1)`` is what a network trained on those items expects.
 
     Example:
         >>> from torchface.model import load_candide3
         >>> normaliser = NormalisedFace(load_candide3(), size=64)
         >>> # image, mask = normaliser(frames, tracker.state)                  # a TrackerState (preferred), or
         >>> # image, mask = normaliser(frames, result, shape_coeffs, intrinsics)  # a TrackResult without re-anchoring
+        >>> # NormalisedFace(tracker.model, keep_expression=True)(frames, tracker.state)  # the expression kept
     """
 
     def __init__(
@@ -765,6 +779,8 @@ class NormalisedFace(DeviceCheckedModule):
         distance_mm: float = 2000.0,
         depth_tolerance: float = DEFAULT_DEPTH_TOLERANCE,
         min_facing_cos: float = DEFAULT_MIN_FACING_COS,
+        *,
+        keep_expression: bool = False,
     ) -> None:
         super().__init__()
         self.model = model
@@ -772,6 +788,7 @@ class NormalisedFace(DeviceCheckedModule):
         # (checked by normalised_face too, but only at the first call; "5" was taken by float())
         tolerance, facing = _check_visibility_settings(depth_tolerance, min_facing_cos)
         self.depth_tolerance, self.min_facing_cos = float(tolerance), float(facing)
+        self.keep_expression = check_bool(keep_expression, "keep_expression")
 
     def _apply(self, fn: Callable[[Tensor], Tensor], recurse: bool = True) -> "NormalisedFace":
         """Move the face model and the layout with the module (``.to``, ``.double``, ``.float``, ``.cuda``, ...)."""
@@ -802,7 +819,11 @@ class NormalisedFace(DeviceCheckedModule):
             intrinsics: camera of ``frames`` with a TrackResult.
 
         Returns:
-            :class:`NormalisedFaceResult` ``(image (B, C, G, G), mask (B, 1, G, G))``.
+            :class:`NormalisedFaceResult` ``(image (B, C, G, G), mask (B, 1, G, G))``; with ``keep_expression``, the
+            expression kept (constructor).
+
+        Raises:
+            ValueError: ``keep_expression`` with a TrackResult (it holds no neutral expression: pass the state).
         """
         from torchface.tracker.module import FaceTracker
         from torchface.tracker.params import ParamLayout
@@ -823,8 +844,15 @@ class NormalisedFace(DeviceCheckedModule):
                 raise TypeError(f"the state is {kept[0]} on {kept[1]}, this normaliser's model {self.model.dtype} on "
                                 f"{self.model.device}: move one of them (normaliser.to(...))")  # fmt: skip
             aa, t, alpha, light = layout.split(estimate.params)
+            if self.keep_expression:  # the person's neutral, as NormalisedFaceLayer and torchface track resample at
+                alpha = estimate.neutral_anim_coeffs(alpha)
             return self.from_params(frames, estimate.shape_coeffs, alpha, aa, t, light, estimate.intrinsics)
         if isinstance(estimate, TrackResult):
+            if self.keep_expression:  # (its expression is measured from the neutral, which it does not hold)
+                raise ValueError(
+                    "keep_expression resamples at the person's neutral expression, which a TrackResult does not hold: "
+                    "pass the tracker's state, normaliser(frames, tracker.state)"
+                )
             if shape_coeffs is None:
                 raise ValueError(
                     "with a TrackResult, shape_coeffs (B, S) is required; pass tracker.state instead of the result "
