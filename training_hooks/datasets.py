@@ -204,6 +204,7 @@ from torchface.io.errors import InputError
 from torchface.io.landmarks import NUM_LANDMARKS, check_landmarks, read_landmarks
 from torchface.io.video import (
     CONVERT_HINT,
+    CONVERT_OPTION,
     NAN_PIXELS_HINT,
     NAN_PIXELS_WHY,
     folder_of_videos_hint,
@@ -561,30 +562,11 @@ _DATASET_NAN_PIXELS_HINT: str = (
 )
 
 
-#: How a ``.npy`` frame array is saved as the reader takes it, per problem :func:`torchface.io.format_problems` names
-#: (``a``: the ``(T, H, W[, C])`` array): an array's fix, where the ffmpeg command of :data:`_DATASET_CONVERT_HINT`
-#: suits a video file.
-_ARRAY_FIXES: tuple[tuple[str, str], ...] = (
-    ("grayscale", "np.repeat(a[..., None], 3, -1) for gray (T, H, W) frames (np.repeat(a, 3, -1) of (T, H, W, 1))"),
-    ("RGBA", "a[..., :3] for RGBA"),
-    ("16-bit", "(a / 65535).astype(np.float32) for 16-bit"),
-    ("odd size", "a[:, : a.shape[1] // 2 * 2, : a.shape[2] // 2 * 2] for an odd size"),
-)
-
-
-def _array_convert_hint(problems: str) -> str:
-    """The end of the message of a ``.npy`` array whose frames are ``problems`` (e.g. ``"grayscale, odd size
-    31x20"``): how to save it as 8-bit RGB ``(T, H, W, 3)`` frames, or ``DatasetConfig(convert=True)``."""
-    fixes = ", then ".join(f"a = {fix}" for word, fix in _ARRAY_FIXES if word in problems)
-    return (f"save the array as (T, H, W, 3) RGB frames of even height and width, uint8 or float in [0, 1]: "
-            f"np.save(path, a) after {fixes}; or set DatasetConfig(convert=True)")  # fmt: skip
-
-
 @contextmanager
-def _dataset_hint(path: Path | None = None) -> Iterator[None]:
+def _dataset_hint() -> Iterator[None]:
     """Re-raise :mod:`torchface.io`'s refusal of a grayscale, RGBA, 16-bit or odd-sized frame with the dataset's
-    setting in place of the command line's ``--convert`` (of a ``.npy`` ``path``, how to save the array instead of
-    the ffmpeg command: :func:`_array_convert_hint`), and its refusal of a frame file's NaN pixels with what a
+    setting in place of the command line's ``--convert`` (a ``.npy`` array is told how to save it:
+    :func:`torchface.io.video.array_convert_hint`), and its refusal of a frame file's NaN pixels with what a
     dataset's user can do (:data:`_DATASET_NAN_PIXELS_HINT`)."""
     try:
         yield
@@ -592,12 +574,11 @@ def _dataset_hint(path: Path | None = None) -> Iterator[None]:
         text = str(exc)
         if text.endswith(f"({NAN_PIXELS_HINT})"):
             raise InputError(text[: -len(NAN_PIXELS_HINT) - 1] + _DATASET_NAN_PIXELS_HINT + ")") from None
-        if not text.endswith(CONVERT_HINT):
-            raise
-        head = text[: -len(CONVERT_HINT)]
-        if path is not None and path.suffix.lower() == ".npy" and ": frames are " in head:
-            raise InputError(head + _array_convert_hint(head.rsplit(": frames are ", 1)[1])) from None
-        raise InputError(head + _DATASET_CONVERT_HINT) from None
+        if text.endswith(CONVERT_HINT):
+            raise InputError(text[: -len(CONVERT_HINT)] + _DATASET_CONVERT_HINT) from None
+        if text.endswith(CONVERT_OPTION):  # (a .npy array's: torchface.io.array_convert_hint, how to save it)
+            raise InputError(text[: -len(CONVERT_OPTION)] + "set DatasetConfig(convert=True)") from None
+        raise
 
 
 def _by_reference(detector: object) -> object:
@@ -1359,7 +1340,7 @@ class VideoDataset(IterableDataset):
                 start = self._face_frame(index)  # (before the cache is asked: the key holds the detection)
                 frames = self._cached_frames(index)
                 if frames is None:
-                    with _dataset_hint(self.videos[index]):
+                    with _dataset_hint():
                         frames = _count_frames(self.videos[index], c.convert, self._frame_ticks(index, "decoded"))
                     frames -= start
             except (InputError, OSError) as exc:
@@ -1633,7 +1614,7 @@ class VideoDataset(IterableDataset):
         known = self._detection(index, content)
         if known is not None:
             return known[0]
-        with _dataset_hint(path):
+        with _dataset_hint():
             with open_frames(path, convert=self.config.convert) as reader:
                 return self._search(index, reader, content)[0]
 
@@ -1775,10 +1756,10 @@ class VideoDataset(IterableDataset):
                     check_landmarks(known[1], W, H, f"{path}: landmarks", missing=True, count=self.num_landmarks)
                 self.stats.videos += 1
                 return stored, True, None
-        with _dataset_hint(path):
+        with _dataset_hint():
             reader = open_frames(path, convert=self.config.convert)
         try:
-            with _dataset_hint(path):  # (a later frame's format is found as the search reads it)
+            with _dataset_hint():  # (a later frame's format is found as the search reads it)
                 start, first, landmarks = self._first_landmarks(index, reader, content)
             key = None
             if cache is not None:
@@ -1793,7 +1774,7 @@ class VideoDataset(IterableDataset):
             tick = self._frame_ticks(index, "tracked")
             if tick is not None:  # (the wait for the first item: :class:`_FirstItemProgress`)
                 frames = _ticking(frames, tick)
-            with _dataset_hint(path):  # (a later frame's format is found as it is read)
+            with _dataset_hint():  # (a later frame's format is found as it is read)
                 sequence, _ = self.transform.track(frames, landmarks)
             self.stats.tracking_s += time.perf_counter() - t0
         finally:

@@ -152,6 +152,26 @@ def test_gray_frame_mid_folder_is_rejected(tmp_path):
     assert _frames(reader).shape == (2, 3, 40, 40)
 
 
+def test_an_array_to_convert_is_told_how_to_save_it_not_an_ffmpeg_command(tmp_path):
+    """``torchface track gray.npy`` was told ``ffmpeg -i in.mp4 ...``, a video file's remedy: an array is told how to
+    save it as the reader takes it (its own problems' fixes only), and the fix reads; a video file keeps ffmpeg's."""
+    from torchface.io.video import CONVERT_HINT, CONVERT_OPTION
+
+    gray = np.full((3, 41, 40), 90, np.uint8)
+    np.save(tmp_path / "gray.npy", gray)
+    with pytest.raises(InputError) as info:
+        open_frames(tmp_path / "gray.npy")
+    text = str(info.value)
+    assert "frames are grayscale, odd size 40x41" in text and "ffmpeg" not in text, text
+    assert "np.save(path, a) after a = np.repeat(a[..., None], 3, -1) for gray (T, H, W) frames" in text, text
+    assert "then a = a[:, : a.shape[1] // 2 * 2, : a.shape[2] // 2 * 2]" in text and "16-bit" not in text, text
+    assert text.endswith(CONVERT_OPTION) and CONVERT_HINT.endswith(CONVERT_OPTION)
+    a = np.repeat(gray[..., None], 3, -1)  # the fixes as told
+    np.save(tmp_path / "rgb.npy", a[:, : a.shape[1] // 2 * 2, : a.shape[2] // 2 * 2])
+    assert _frames(open_frames(tmp_path / "rgb.npy")).shape == (3, 3, 40, 40)
+    assert _frames(open_frames(tmp_path / "gray.npy", convert=True)).shape == (3, 3, 40, 40)
+
+
 def _write_ffv1(path, frames, params):
     writer = cv2.VideoWriter(str(path), cv2.CAP_FFMPEG, cv2.VideoWriter_fourcc(*"FFV1"), 25, (64, 48), params)
     if not writer.isOpened():

@@ -53,6 +53,7 @@ from torchface.io.errors import InputError
 
 __all__ = [
     "CONVERT_HINT",
+    "CONVERT_OPTION",
     "IMAGE_SUFFIXES",
     "VIDEO_SUFFIXES",
     "folder_of_videos_hint",
@@ -60,6 +61,7 @@ __all__ = [
     "MIN_SIZE",
     "FrameReader",
     "VideoInfo",
+    "array_convert_hint",
     "format_problems",
     "frame_to_tensor",
     "open_capture",
@@ -78,8 +80,30 @@ MIN_SIZE: int = 32
 #: How to proceed when a frame is grayscale, RGBA, 16-bit or odd-sized (ends every such error message).
 CONVERT_HINT: str = (
     'convert it first, e.g. ffmpeg -i in.mp4 -pix_fmt rgb24 -vf "crop=trunc(iw/2)*2:trunc(ih/2)*2" out.mp4, '
-    "or pass --convert to let torchface convert the frames itself"
+    "or pass --convert to let torchface convert the frames itself"  # (CONVERT_OPTION)
 )
+#: How :data:`CONVERT_HINT` and :func:`array_convert_hint` end: the command line's own conversion (a front end with
+#: another way to ask for it, ``DatasetConfig(convert=True)``, puts its own in place of this).
+CONVERT_OPTION: str = "pass --convert to let torchface convert the frames itself"
+#: How a ``.npy`` frame array is saved as the reader takes it, per problem :func:`format_problems` names (``a``: the
+#: ``(T, H, W[, C])`` array): an array's fix, where :data:`CONVERT_HINT`'s ffmpeg command suits a video file.
+_ARRAY_FIXES: tuple[tuple[str, str], ...] = (
+    ("grayscale", "np.repeat(a[..., None], 3, -1) for gray (T, H, W) frames (np.repeat(a, 3, -1) of (T, H, W, 1))"),
+    ("RGBA", "a[..., :3] for RGBA"),
+    ("16-bit", "(a / 65535).astype(np.float32) for 16-bit"),
+    ("odd size", "a[:, : a.shape[1] // 2 * 2, : a.shape[2] // 2 * 2] for an odd size"),
+)
+
+
+def array_convert_hint(problems: str) -> str:
+    """The end of the message of a ``.npy`` array whose frames are ``problems`` (:func:`format_problems` joined,
+    e.g. ``"grayscale, odd size 31x20"``): how to save it as 8-bit RGB ``(T, H, W, 3)`` frames, or
+    :data:`CONVERT_OPTION` (:data:`CONVERT_HINT`'s counterpart for an array, whose ffmpeg command suits a file)."""
+    fixes = ", then ".join(f"a = {fix}" for word, fix in _ARRAY_FIXES if word in problems)
+    return (f"save the array as (T, H, W, 3) RGB frames of even height and width, uint8 or float in [0, 1]: "
+            f"np.save(path, a) after {fixes}; or {CONVERT_OPTION}")  # fmt: skip
+
+
 #: OpenCV pixel-format FourCCs of grayscale video (8-bit ``Y800``/``GREY``/``Y8``, 16-bit ``Y1[0][16]``).
 _GRAY_FOURCCS: frozenset[str] = frozenset({"Y800", "GREY", "Y8  ", "Y8\x00\x00", "Y1\x00\x10", "\x10\x001Y", "Y16 "})
 #: FourCCs of packed RGB(A) video (8- and 16-bit) whose undecoded first frame shows alpha and bit depth.
@@ -574,7 +598,14 @@ def open_frames(path: str | os.PathLike[str], convert: bool = False) -> FrameRea
             raise InputError(f"{p}: shape {array.shape} looks like channels-first frames (T, C, H, W), as PyTorch "
                              "holds them; a clip is (T, H, W, C): save it as array.transpose(0, 2, 3, 1)")  # fmt: skip
         rest = _array_frames(array[1:])
-        first, fmt = frame_to_tensor(np.array(array[0]), False, f"{p}: frame 0", convert)
+        try:
+            first, fmt = frame_to_tensor(np.array(array[0]), False, f"{p}: frame 0", convert)
+        except InputError as exc:  # (an array is told how to save it, not the ffmpeg command of a video file)
+            text = str(exc)
+            if not text.endswith(CONVERT_HINT):
+                raise
+            head = text[: -len(CONVERT_HINT)]
+            raise InputError(head + array_convert_hint(head.rsplit(": frames are ", 1)[-1])) from None
         _check_size(p, first)
         conv = _conversion(array[0], fmt, format_problems(array[0]))
         info = VideoInfo(p, "array", first.shape[-1], first.shape[-2], 25.0, int(array.shape[0]), fmt, conv, True)
