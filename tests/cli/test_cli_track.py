@@ -3944,14 +3944,14 @@ def test_landmarks_files_with_missing_points_track_as_the_python_api_given_nan_r
     names = [*files, "lm.npy"]
     for name in names:
         rc = main(["track", str(tmp_path / "a.npy"), "--landmarks", str(tmp_path / name), "--out",
-                   str(tmp_path / f"out_{name}"), "--quiet", "--no-online-refine"])  # fmt: skip
+                   str(tmp_path / f"out_{name}_"), "--quiet", "--no-online-refine"])  # fmt: skip
         assert rc == 0, (name, capsys.readouterr().err)
-        side = json.loads((tmp_path / f"out_{name}" / "a.json").read_text())
+        side = json.loads((tmp_path / f"out_{name}_" / "a.json").read_text())
         assert side["initial_landmarks_px"] == [[None, None] if k in gone else p for k, p in enumerate(points.tolist())]
-    first = (tmp_path / f"out_{names[0]}" / "a.csv").read_text()
+    first = (tmp_path / f"out_{names[0]}_" / "a.csv").read_text()
     for name in names[1:]:
-        assert (tmp_path / f"out_{name}" / "a.csv").read_text() == first, name
-    _, rows, R, t = _pose(tmp_path / f"out_{names[0]}" / "a.csv")
+        assert (tmp_path / f"out_{name}_" / "a.csv").read_text() == first, name
+    _, rows, R, t = _pose(tmp_path / f"out_{names[0]}_" / "a.csv")
     assert rows.shape[0] == 2
     tracker = FaceTracker(refine_first=None)  # (--no-online-refine)
     frames0 = torch.from_numpy(frames[:1]).permute(0, 3, 1, 2).float() / 255
