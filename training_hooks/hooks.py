@@ -140,8 +140,15 @@ def confidence_weighted_loss(loss: Tensor, confidence: Tensor, mask: Tensor | No
         raise ValueError("confidence must be finite and in [0, 1]")
     if mask is not None:
         c = c * mask.to(device=c.device, dtype=c.dtype)
-    if loss.grad_fn is not None:  # (the parameters' gradients came out NaN without a word)
-        bad = int(((c <= 0) & ~torch.isfinite(loss.detach())).sum())
+    # torch.where, not the product alone: 0 * NaN (a padded frame's 0 / 0 loss) would be NaN.
+    weighted = torch.where(c > 0, loss * c, 0.0).sum()
+    total = c.sum()
+    if loss.grad_fn is None:
+        positive = float(total) > 0.0
+    else:  # (the parameters' gradients came out NaN without a word; one read of the device for both, as without)
+        read = torch.stack([(total > 0).to(torch.int64), ((c <= 0) & ~torch.isfinite(loss.detach())).sum()])
+        flag, bad = read.tolist()
+        positive = flag > 0
         if bad:
             warnings.warn(
                 f"confidence_weighted_loss: the loss is NaN or inf at {bad} of its {loss.numel()} entries of weight 0 "
@@ -152,10 +159,7 @@ def confidence_weighted_loss(loss: Tensor, confidence: Tensor, mask: Tensor | No
                 RuntimeWarning,
                 stacklevel=2,
             )
-    # torch.where, not the product alone: 0 * NaN (a padded frame's 0 / 0 loss) would be NaN.
-    weighted = torch.where(c > 0, loss * c, 0.0).sum()
-    total = c.sum()
-    if float(total) <= 0.0:
+    if not positive:
         return weighted  # 0, in the graph
     return weighted / total
 

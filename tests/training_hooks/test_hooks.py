@@ -130,6 +130,42 @@ def test_weighted_loss_warns_of_a_nan_loss_made_upstream_at_a_zero_weight_entry(
     assert bool(torch.isfinite(w.grad).all())
 
 
+class _HostReads(torch.overrides.TorchFunctionMode):
+    """Counts the reads of a tensor's values into Python (each a device sync on a GPU)."""
+
+    READS = ("item", "tolist", "__bool__", "__int__", "__float__", "__index__", "cpu", "numpy")
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.reads: list[str] = []
+
+    def __torch_function__(self, func, types, args=(), kwargs=None):
+        if getattr(func, "__name__", "") in self.READS:
+            self.reads.append(func.__name__)
+        return func(*args, **(kwargs or {}))
+
+
+def test_weighted_loss_with_a_graph_reads_the_device_no_more_than_without():
+    """The check for NaN losses at zero weights (only where the loss has a graph: a training step) added a sync of
+    its own, an ``int(...)`` per call, to a function called every training step; it now shares the one read the
+    weighted mean already made. The value and the warning are as before."""
+    w = torch.ones(2, 3, requires_grad=True)
+    conf = torch.tensor([[0.9, 0.8, 0.7], [0.9, 0.9, 0.0]])
+    mask = torch.tensor([[True, True, True], [True, True, False]])
+    counts = []
+    for loss in ((w * 2).detach(), w * 2):
+        with _HostReads() as reads:
+            out = confidence_weighted_loss(loss, conf, mask)
+        counts.append(len(reads.reads))
+        assert torch.allclose(out, torch.tensor(2.0))
+    assert counts[1] == counts[0], counts
+    bad = w * torch.tensor([[1.0, 1.0, 1.0], [1.0, 1.0, float("nan")]])
+    with _HostReads() as reads, pytest.warns(RuntimeWarning, match="NaN or inf at 1 of its 6 entries"):
+        out = confidence_weighted_loss(bad, conf, mask)
+    assert len(reads.reads) == counts[0] and torch.allclose(out, torch.tensor(1.0))
+    assert confidence_weighted_loss(w * 2, torch.zeros(2, 3)).item() == 0.0  # every weight 0: 0, in the graph
+
+
 def test_weighted_loss_of_another_shape_is_told_how_to_make_it():
     """A loss already reduced (cross_entropy's default reduction="mean"), one per clip of a clip batch and a (B, 1)
     head's were told the shapes alone."""
