@@ -1060,3 +1060,22 @@ def test_a_track_csv_given_as_landmarks_is_refused_naming_its_sidecar(tmp_path):
     w.stop()
     with pytest.raises(InputError, match=r"part\.csv\.partial: a torchface track CSV.*\(part\.json\)"):
         read_landmarks(tmp_path / "part.csv.partial", 640, 480)
+
+
+
+def test_a_track_csv_with_landmark_columns_added_is_read_as_openfaces(tmp_path):
+    """A CSV of the track's columns with x_k, y_k columns added to its rows (a table joined with a detector's points)
+    holds landmarks, which are read as OpenFace's are (the first row's x_k, y_k): the refusal of a track CSV given as
+    landmarks refused it too, though it was read before."""
+    from torchface.io import track_columns
+
+    cols = list(track_columns(("AUV11 Jaw drop",), ("AU26",), ("gain", "bias")))
+    points = np.random.default_rng(0).uniform(100, 400, (68, 2))
+    names = cols + [f"x_{k}" for k in range(68)] + [f"y_{k}" for k in range(68)]
+    rows = np.zeros((2, len(names)))
+    rows[:, cols.index("success")] = 1
+    rows[:, len(cols):] = np.concatenate([points[:, 0], points[:, 1]])
+    rows[1, len(cols):] += 5.0  # (the second frame's points: not the start's)
+    path = tmp_path / "joined.csv"
+    path.write_text(",".join(names) + "\n" + "\n".join(",".join(repr(float(v)) for v in r) for r in rows) + "\n")
+    assert np.array_equal(read_landmarks(path, 640, 480), points)

@@ -504,7 +504,9 @@ def _parse_csv_as(p: Path, text: str, comma: bool, count: int = NUM_LANDMARKS) -
     # leaves beyond the row's width: the header's where it names the cells (OpenFace's, x_k / y_k), else one row of
     # 136 or rows of 2 (``x,y,``: x and y; under a header of other words, a title or ``x,y,note``, as without one).
     names = _trimmed(_cells(header, comma), 0) if header is not None else []
-    if {"frame", "pose_Tx", "yaw_deg"} <= set(names):  # (``--landmarks results/clip.csv``: "got rows of [62] values")
+    # (``--landmarks results/clip.csv``: "got rows of [62] values"; one whose x_k, y_k columns were added to its
+    # rows holds landmarks, read as OpenFace's are)
+    if {"frame", "pose_Tx", "yaw_deg"} <= set(names) and "x_0" not in names:
         sidecar = Path(p.name.removesuffix(".partial")).with_suffix(".json").name
         raise InputError(f"{p}: a torchface track CSV, which holds no landmarks: give its JSON sidecar ({sidecar}), "
                          "whose initial_landmarks_px are the landmarks its run started from")  # fmt: skip
