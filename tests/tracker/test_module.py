@@ -565,6 +565,53 @@ def test_a_detector_that_cannot_take_the_frames_is_refused_at_construction(model
     assert counted.calls == 0
 
 
+class _Detectors:
+    """Holders of detectors as methods: bound, of the class, static."""
+
+    def bound(self, frames: torch.Tensor) -> torch.Tensor:
+        return torch.full((frames.shape[0], 68, 2), float("nan"))
+
+    @classmethod
+    def of_class(cls, frames: torch.Tensor) -> torch.Tensor:
+        return torch.full((frames.shape[0], 68, 2), float("nan"))
+
+    @staticmethod
+    def static(frames: torch.Tensor) -> torch.Tensor:
+        return torch.full((frames.shape[0], 68, 2), float("nan"))
+
+
+class _StarArgs:
+    """A callable instance taking ``*args``."""
+
+    def __call__(self, *args: torch.Tensor) -> torch.Tensor:
+        return torch.full((args[0].shape[0], 68, 2), float("nan"))
+
+
+def test_the_detector_signature_check_takes_every_callable_that_can_take_the_frames(model):
+    """The constructor's signature check (check_detector_callable) reads a callable's signature: bound, class and
+    static methods, an instance whose __call__ takes *args, a functools.partial of a two-argument function with its
+    first argument bound, a torch.jit.script function and a callable implemented in C (no signature to read) can
+    all be called as detector(frames), and are taken, uncalled; check_detector calls the Python ones once."""
+    import functools
+
+    from torchface.tracker import check_detector
+
+    def two(first, frames):
+        return torch.full((frames.shape[0], 68, 2), float("nan"))
+
+    @torch.jit.script
+    def scripted(frames: torch.Tensor) -> torch.Tensor:
+        return torch.full([frames.shape[0], 68, 2], float("nan"))
+
+    holder = _Detectors()
+    python = [holder.bound, _Detectors.of_class, _Detectors.static, _StarArgs(), functools.partial(two, None), scripted]
+    for detector in [*python, torch.sigmoid, torch.nn.Sigmoid()]:
+        assert FaceTracker(CFG, model, detector=detector).detector is detector
+    frames = torch.rand(2, 3, 48, 64)
+    for detector in python:
+        assert bool(check_detector(detector, frames).isnan().all())
+
+
 _K_ANSWERS = [
     (lambda lm: lm.numpy(), TypeError, r"must return a \(3, 68, 2\) tensor .*got ndarray \(a NumPy array: "
                                        r"torch.from_numpy\(landmarks\)\)"),
