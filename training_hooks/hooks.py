@@ -144,9 +144,9 @@ def confidence_weighted_loss(loss: Tensor, confidence: Tensor, mask: Tensor | No
     weighted = torch.where(c > 0, loss * c, 0.0).sum()
     total = c.sum()
     if loss.grad_fn is None:
-        positive = float(total) > 0.0
+        positive = not float(total) <= 0.0  # (a NaN total, of a float mask with NaN, divides, as before)
     else:  # (the parameters' gradients came out NaN without a word; one read of the device for both, as without)
-        read = torch.stack([(total > 0).to(torch.int64), ((c <= 0) & ~torch.isfinite(loss.detach())).sum()])
+        read = torch.stack([(~(total <= 0)).to(torch.int64), ((c <= 0) & ~torch.isfinite(loss.detach())).sum()])
         flag, bad = read.tolist()
         positive = flag > 0
         if bad:
