@@ -155,7 +155,8 @@ def confidence_weighted_loss(loss: Tensor, confidence: Tensor, mask: Tensor | No
                 "(padded, failed or zero-confidence frames): they add 0 to the value, but the backward of what made "
                 "them NaN gives NaN gradients upstream (0 * NaN). Compute the loss of the real frames alone (e.g. of "
                 "batch['face'][batch['frame_mask']]), or keep those inputs finite (a black padded face over its own "
-                "standard deviation is 0 / 0)",
+                "standard deviation is 0 / 0). NaN put there on purpose (torch.where, masked_fill) has finite "
+                "gradients: filter this warning then",
                 RuntimeWarning,
                 stacklevel=2,
             )

@@ -1790,3 +1790,17 @@ def test_a_short_video_found_by_a_detector_is_named_with_the_frame_its_face_appe
             f"({FRAMES} frames from frame 3, the detector's first with a face) (DatasetConfig.clip_length={FRAMES + 1})"
             ": left out. DatasetConfig(keep_short_clips=True) yields each as one shorter clip (collate_clips pads them)"
         ]
+
+
+def test_loader_throughput_measures_another_dataset_of_such_items() -> None:
+    """loader_throughput set a VideoDataset's epoch around its pass (RepeatedEpochWarning): another iterable of the
+    same dicts (a ChainDataset of two, a user's own) met an AttributeError, no set_epoch; it is measured as it is."""
+    from torch.utils.data import ChainDataset, IterableDataset
+
+    class Faces(IterableDataset):
+        def __iter__(self):
+            for k in range(3):
+                yield {"face": torch.zeros(3, 8, 8), "cached": torch.tensor(k % 2 == 0)}
+
+    got = loader_throughput(ChainDataset([Faces(), Faces()]), 0, batch_size=2)
+    assert got["faces"] == 6.0 and got["cached_fraction"] == 4 / 6
