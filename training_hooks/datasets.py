@@ -127,7 +127,8 @@ pass (a measurement), nor the iteration after it. Told, as the order does
 repeat: a shuffled validation set iterated each epoch (give it ``shuffle_buffer=0``, or call
 ``data.set_epoch(data.epoch)`` before it), and a first batch looked at (``next(iter(loader))``) followed by the first
 epoch with no ``set_epoch`` between (a loop that calls it after each epoch). Under DDP each rank's
-dataset keeps its own record. The warning can be filtered as any (a forked worker keeps the filter of the process
+dataset keeps its own record where each rank builds its own (``torchrun``'s processes); ranks handed one dataset's
+shared memory (Lightning's ``ddp_spawn``) overwrite each other's record, and are not told. The warning can be filtered as any (a forked worker keeps the filter of the process
 that started it; a spawned one takes ``-W`` and ``PYTHONWARNINGS``).
 
 Copies: ``copy.copy(data)`` shares the dataset's state (the same shared memory: epoch, counts, detections, skips,
