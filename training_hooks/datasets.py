@@ -128,8 +128,9 @@ repeat: a shuffled validation set iterated each epoch (give it ``shuffle_buffer=
 ``data.set_epoch(data.epoch)`` before it), and a first batch looked at (``next(iter(loader))``) followed by the first
 epoch with no ``set_epoch`` between (a loop that calls it after each epoch). Under DDP each rank's
 dataset keeps its own record where each rank builds its own (``torchrun``'s processes); ranks handed one dataset's
-shared memory (Lightning's ``ddp_spawn``) overwrite each other's record, and are not told. The warning can be filtered as any (a forked worker keeps the filter of the process
-that started it; a spawned one takes ``-W`` and ``PYTHONWARNINGS``).
+shared memory (Lightning's ``ddp_spawn``) overwrite each other's record, and are not told. The warning can be
+filtered as any (a forked worker keeps the filter of the process that started it; a spawned one takes ``-W`` and
+``PYTHONWARNINGS``).
 
 Copies: ``copy.copy(data)`` shares the dataset's state (the same shared memory: epoch, counts, detections, skips,
 the warnings given); ``copy.deepcopy(data)`` is an independent dataset, its state copied as it is then into shared
