@@ -172,6 +172,16 @@ def test_an_array_to_convert_is_told_how_to_save_it_not_an_ffmpeg_command(tmp_pa
     assert _frames(open_frames(tmp_path / "gray.npy", convert=True)).shape == (3, 3, 40, 40)
 
 
+def test_a_single_image_file_is_one_frame_of_an_assumed_rate(tmp_path):
+    """A ``.png`` given as an input is read as a video of one frame, whose 25 frames/s FFmpeg's image demuxer gave as
+    the input's own (``fps_assumed`` False, so the JSON claimed a frame rate an image has not) with no frame count."""
+    for k in range(1, 3):  # (a numbered name: still the one image, not a sequence from it)
+        cv2.imwrite(str(tmp_path / f"img_{k:03d}.png"), np.full((48, 64, 3), 40 * k, np.uint8))
+    reader = open_frames(tmp_path / "img_001.png")
+    assert reader.info.fps_assumed and reader.info.fps == 25.0 and reader.info.num_frames == 1, reader.info
+    assert _frames(reader).shape == (1, 3, 48, 64)
+
+
 def _write_ffv1(path, frames, params):
     writer = cv2.VideoWriter(str(path), cv2.CAP_FFMPEG, cv2.VideoWriter_fourcc(*"FFV1"), 25, (64, 48), params)
     if not writer.isOpened():

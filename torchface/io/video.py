@@ -128,8 +128,8 @@ class VideoInfo:
         source_format: what the first frame stored, e.g. ``"uint8 BGR"``, ``"uint16 gray"``.
         conversion: what ``convert=True`` did to it, e.g. ``"uint16 gray -> uint8-range RGB; cropped 159x119 to
             158x118"``; empty when the frames are used as stored.
-        fps_assumed: True when ``fps`` is the default 25, not the input's: image folders, arrays, and videos whose
-            container gives no frame rate or one outside (0, 1000) frames/s.
+        fps_assumed: True when ``fps`` is the default 25, not the input's: image folders, arrays, a single image
+            file, and videos whose container gives no frame rate or one outside (0, 1000) frames/s.
     """
 
     path: Path
@@ -637,8 +637,10 @@ def open_frames(path: str | os.PathLike[str], convert: bool = False) -> FrameRea
     fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
     count = float(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0.0)  # -1 or garbage (-1.9e14: a raw .mjpeg) when unknown
     assumed = not (math.isfinite(fps) and 0 < fps < 1000)
-    fps = 25.0 if assumed else fps
     declared = int(count) if math.isfinite(count) and count >= 1 else None
+    if p.suffix.lower() in IMAGE_SUFFIXES:  # one image, read as a video of one frame: FFmpeg's image demuxer gave
+        assumed, declared = True, 1  # 25 frames/s as the input's own (the JSON's fps_assumed false) and no count
+    fps = 25.0 if assumed else fps
     info = VideoInfo(p, "video", first.shape[-1], first.shape[-2], fps, declared, fmt, conv, assumed)
     return FrameReader(info, first, _video_frames(cap), cap.release, stored_size=img.shape[:2], convert=convert,
                        clock=lambda: cap.get(cv2.CAP_PROP_POS_MSEC), first_image=first_image)  # fmt: skip
