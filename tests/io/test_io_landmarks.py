@@ -1079,3 +1079,17 @@ def test_a_track_csv_with_landmark_columns_added_is_read_as_openfaces(tmp_path):
     path = tmp_path / "joined.csv"
     path.write_text(",".join(names) + "\n" + "\n".join(",".join(repr(float(v)) for v in r) for r in rows) + "\n")
     assert np.array_equal(read_landmarks(path, 640, 480), points)
+
+
+def test_a_frame_size_that_is_not_whole_pixels_is_a_type_error_naming_it(tmp_path):
+    """``read_landmarks(path, "160", "120")`` (sizes from a command line's text) met a bare ``TypeError`` in the
+    arithmetic ("unsupported operand type(s) for -: 'str' and 'float'"), and ``160.5`` was taken as the frame's
+    edge; a numpy integer is a size as an int is."""
+    points = np.stack([np.linspace(20, 140, 68), np.linspace(10, 110, 68)], 1)
+    np.save(tmp_path / "lm.npy", points)
+    for width, height in (("160", "120"), (160.5, 120), (160, 0), (True, 120)):
+        with pytest.raises(TypeError, match=r"(width|height) must be a whole positive number of pixels"):
+            read_landmarks(tmp_path / "lm.npy", width, height)
+        with pytest.raises(TypeError, match=r"must be a whole positive number of pixels"):
+            check_landmarks(points, width, height, "lm")
+    assert np.array_equal(read_landmarks(tmp_path / "lm.npy", np.int64(160), 120), points)

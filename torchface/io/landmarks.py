@@ -723,6 +723,17 @@ def landmarks_shape_hint(shape: tuple[int, ...], count: int, name: str = "landma
     return ""
 
 
+def _check_frame_size(width: object, height: object) -> None:
+    """Refuse a frame size that is not whole positive pixels (``"160"`` from a command line's text met a bare
+    ``TypeError`` in the arithmetic; ``160.5`` was taken as a frame's edge at 160.5). A ``TypeError``, the
+    constructor's of :class:`~torchface.geometry.Intrinsics` (a caller's mistake, not the file's)."""
+    import numbers
+
+    for name, value in (("width", width), ("height", height)):
+        if isinstance(value, bool) or not isinstance(value, numbers.Integral) or int(value) < 1:
+            raise TypeError(f"{name} must be a whole positive number of pixels (an int), got {value!r}")
+
+
 def check_landmarks(
     points: np.ndarray, width: int, height: int, where: str, *, min_inside: float = 1.0, missing: bool = False,
     missing_as: str = "", count: int = NUM_LANDMARKS,
@@ -754,6 +765,7 @@ def check_landmarks(
             all within ``[-0.5, 1.5] x [-0.5, 1.5]`` spanning at most 1.5 and not all at one point (normalised
             coordinates, MediaPipe's, not pixels; a little outside ``[0, 1]`` for a face partly out of the frame).
     """
+    _check_frame_size(width, height)
     dtype = np.asarray(points).dtype
     if not (np.issubdtype(dtype, np.integer) or np.issubdtype(dtype, np.floating)):  # (complex: its imaginary part
         raise InputError(f"{where}: landmarks must be real numbers, got {dtype}")  # was dropped with a warning)
@@ -843,10 +855,12 @@ def read_landmarks(
     Raises:
         InputError: missing or unreadable file, wrong count, infinite values, too few points given (or, without
             ``missing``, any NaN), or out-of-frame points.
+        TypeError: ``width`` or ``height`` not a whole positive number (``"160"``, ``160.5``).
 
     Example:
         >>> # points = read_landmarks("first_frame.csv", 640, 480)   # (68, 2)
     """
+    _check_frame_size(width, height)  # (before the file is read: a caller's mistake, whatever the file holds)
     p = Path(path)
     if not p.is_file():
         raise InputError(f"{p}: {'a folder, not a landmarks file' if p.is_dir() else 'no such landmarks file'}")
