@@ -630,9 +630,10 @@ def _candide_at_random_poses(model, n: int, g: torch.Generator, near_first: bool
 def test_native_coverage_is_the_torch_codes_bit_for_bit(candidate_path, monkeypatch, dtype):
     """The native z-buffer tests every pixel of each box with the torch code's arithmetic: the same fragments bit
     for bit as either torch path, on random soups and surfaces, triangles crossing the near plane, and the
-    CANDIDE-3 mesh at random poses (turned away, close to the camera, partly off the image), with and without
-    back-face culling. Its coverage made in a caller's memory (``scratch``, holding stale values) is the same: the
-    kernel writes every element there."""
+    CANDIDE-3 mesh at random poses (turned away, close to the camera, partly off the image), a triangle projected
+    far beyond the image, with and without back-face culling (the kernel makes each triangle's pixel box itself).
+    Its coverage made in a caller's memory (``scratch``, holding stale values) is the same: the kernel writes every
+    element there."""
     if candidate_path != "native":
         pytest.skip("compares the native path with the torch paths itself")
     from torchface.model.candide import load_candide3
@@ -640,7 +641,10 @@ def test_native_coverage_is_the_torch_codes_bit_for_bit(candidate_path, monkeypa
     model = load_candide3(dtype=torch.float64)
     face = _candide_at_random_poses(model, 6, torch.Generator().manual_seed(5), near_first=True)
     near_plane = torch.tensor([[[-30.0, -20.0, -10.0], [40.0, -20.0, 90.0], [0.0, 40.0, 90.0]]], dtype=torch.float64)
-    meshes = [random_soup(8, 2, 30), random_surface(9, 2), (near_plane, torch.tensor([[0, 1, 2]])), (face, model.faces)]
+    # A corner projected beyond _MAX_PROJECTED_PX (the kernel's own boxes: whole image rows, as the torch code's)
+    far = torch.tensor([[[-30.0, -20.0, 100.0], [1e5, -20.0, 100.0], [0.0, 40.0, 100.0]]], dtype=torch.float64)
+    tri = torch.tensor([[0, 1, 2]])
+    meshes = [random_soup(8, 2, 30), random_surface(9, 2), (near_plane, tri), (far, tri), (face, model.faces)]
     for verts, faces in meshes:
         covered = False
         for cam in (CAM, Intrinsics.default(160, 120), Intrinsics.default(320, 240)):

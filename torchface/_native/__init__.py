@@ -68,7 +68,7 @@ _SOURCES = ("kernels.c", "level_solver.h", "dissimilarity.h", "normalised_face.h
             "select_pixels.h", "management.h", "template_at.h", "top_pixels.h", "gray_pyramid.h",
             "visible.h")
 #: The library's ABI version (``tf_abi_version``); a cached build of another version is not used.
-_ABI_VERSION = 19
+_ABI_VERSION = 20
 _FLAGS = ("-O3", "-ffp-contract=off", "-fPIC", "-shared", "-std=c11")
 #: Tried first, then left out if the compiler refuses it.
 _ARCH_FLAGS = ("-march=native",)
@@ -155,10 +155,9 @@ class CoverProblem(ctypes.Structure):
 
     _fields_ = [
         *((name, ctypes.c_int) for name in ("B", "F", "H", "W")),
-        ("near", ctypes.c_double),
-        *((name, ctypes.c_void_p) for name in ("coefficients", "ray_a", "ray_b", "skip", "front", "x_first", "x_last",
-                                               "y_first", "y_last", "pix_to_face", "facing", "depth", "sizes",
-                                               "starts")),  # fmt: skip
+        *((name, ctypes.c_double) for name in ("near", "fx", "fy", "cx", "cy", "margin", "max_projected")),
+        *((name, ctypes.c_void_p) for name in ("coefficients", "ray_a", "ray_b", "tri", "usable", "front",
+                                               "pix_to_face", "facing", "depth", "sizes", "starts")),  # fmt: skip
     ]
 
 

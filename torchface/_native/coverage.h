@@ -6,9 +6,13 @@
  *
  * Included twice by kernels.c: REAL is float or double and FN(name) appends the dtype to a name.
  * Layouts: coefficients (13, B F) (rasterizer._face_coefficients: row j + 4 i, function j times ray component i;
- * row 12 k = n . v0; oriented); skip (B F) uint8, the rows not tested; x_first, x_last, y_first, y_last (B F)
- * int64, each row's pixel box (clamped by the caller); ray_a (W), ray_b (H); out: pix_to_face (B, H, W) int64
- * and facing (B, H, W) int8 from front (B F) uint8; depth (B, H, W) REAL workspace.
+ * row 12 k = n . v0; oriented); tri (B F, 3, 3) the triangles' corners (corner, xyz) in the camera frame; usable
+ * (B F) uint8, the rows that may be tested; ray_a (W), ray_b (H); out: pix_to_face (B, H, W) int64 and facing
+ * (B, H, W) int8 from front (B F) uint8; depth (B, H, W) REAL workspace.
+ * Each row's pixel box is rasterizer._project_corners' and _cover's (its corners projected through fx, fy, cx, cy,
+ * widened by margin; the whole image where a corner is at or behind the near plane, or projects beyond
+ * max_projected or to a non-finite position; not tested where every corner is at or behind it), with the same
+ * operations in the same order, so the same boxes: made here, not by some 70 small torch operations of the caller.
  * Windows (sizes not NULL): stream b's image is only the top-left sizes[2 b] x sizes[2 b + 1] (height x width) of
  * the H x W one, written at element starts[b] of the outputs (C order, that size): the same triangles at its
  * pixels as without them, the rest of the image neither tested nor written (rasterizer._cover's windows).
@@ -19,7 +23,9 @@ int FN(tf_coverage)(const TFCoverProblem *p, int b0, int b1) {
     const int F = p->F;
     const size_t N = (size_t)p->B * F;
     const REAL *c = (const REAL *)p->coefficients, *ray_a = (const REAL *)p->ray_a, *ray_b = (const REAL *)p->ray_b;
-    const REAL near = (REAL)p->near;
+    const REAL near = (REAL)p->near, fx = (REAL)p->fx, fy = (REAL)p->fy, cx = (REAL)p->cx, cy = (REAL)p->cy;
+    const REAL margin = (REAL)p->margin, max_projected = (REAL)p->max_projected;
+    const REAL *tri = (const REAL *)p->tri;
     for (int b = b0; b < b1; ++b) {
         const int64_t H = p->sizes ? p->sizes[2 * (size_t)b] : p->H, W = p->sizes ? p->sizes[2 * (size_t)b + 1] : p->W;
         const size_t HW = (size_t)H * W, start = p->sizes ? (size_t)p->starts[b] : (size_t)b * HW;
@@ -32,13 +38,42 @@ int FN(tf_coverage)(const TFCoverProblem *p, int b0, int b1) {
         }
         for (int f = 0; f < F; ++f) {
             const size_t r = (size_t)b * F + f;
-            if (p->skip[r]) continue;
+            if (!p->usable[r]) continue;
+            /* The box, as _project_corners and _cover compute it (the canvas's H x W: a window clamps it below). */
+            const REAL *t = tri + 9 * r;
+            REAL u[3], v[3];
+            int crosses = 0, behind = 1, far = 0;
+            for (int i = 0; i < 3; ++i) {
+                const REAL z = t[3 * i + 2];
+                const int at_or_behind = z <= near;
+                const REAL z_safe = at_or_behind ? (REAL)1 : z;
+                u[i] = t[3 * i] / z_safe * fx + cx;
+                v[i] = t[3 * i + 1] / z_safe * fy + cy;
+                /* beyond the limit or not finite (NaN fails <=) */
+                far |= !((u[i] < 0 ? -u[i] : u[i]) <= max_projected && (v[i] < 0 ? -v[i] : v[i]) <= max_projected);
+                crosses |= at_or_behind;
+                behind &= at_or_behind;
+            }
+            if (behind) continue;
+            int64_t x_first = 0, x_last = p->W - 1, y_first = 0, y_last = p->H - 1;
+            if (!(crosses || far)) {  /* finite corners: amin / amax in any order */
+                const REAL u_min = u[0] < u[1] ? (u[0] < u[2] ? u[0] : u[2]) : (u[1] < u[2] ? u[1] : u[2]);
+                const REAL u_max = u[0] > u[1] ? (u[0] > u[2] ? u[0] : u[2]) : (u[1] > u[2] ? u[1] : u[2]);
+                const REAL v_min = v[0] < v[1] ? (v[0] < v[2] ? v[0] : v[2]) : (v[1] < v[2] ? v[1] : v[2]);
+                const REAL v_max = v[0] > v[1] ? (v[0] > v[2] ? v[0] : v[2]) : (v[1] > v[2] ? v[1] : v[2]);
+                const REAL u_lo = u_min - margin, u_hi = u_max + margin, v_lo = v_min - margin, v_hi = v_max + margin;
+                x_first = (int64_t)ceil((double)u_lo);  /* (in double: the same integers as torch's ceil, floor) */
+                x_last = (int64_t)floor((double)u_hi);
+                y_first = (int64_t)ceil((double)v_lo);
+                y_last = (int64_t)floor((double)v_hi);
+            }
             const REAL a0 = c[0 * N + r], a1 = c[1 * N + r], a2 = c[2 * N + r], a3 = c[3 * N + r];
             const REAL b0c = c[4 * N + r], b1c = c[5 * N + r], b2c = c[6 * N + r], b3c = c[7 * N + r];
             const REAL c0 = c[8 * N + r], c1 = c[9 * N + r], c2 = c[10 * N + r], c3 = c[11 * N + r];
             const REAL k = c[12 * N + r];
-            const int64_t x0 = p->x_first[r], y0 = p->y_first[r];
-            const int64_t x1 = p->x_last[r] < W - 1 ? p->x_last[r] : W - 1, y1 = p->y_last[r] < H - 1 ? p->y_last[r] : H - 1;
+            /* clamped into the image (a box wholly outside it is empty; the caller's skip rows were those) */
+            const int64_t x0 = x_first > 0 ? x_first : 0, y0 = y_first > 0 ? y_first : 0;
+            const int64_t x1 = x_last < W - 1 ? x_last : W - 1, y1 = y_last < H - 1 ? y_last : H - 1;
             for (int64_t y = y0; y <= y1; ++y) {
                 const REAL by = ray_b[y];
                 /* the per-row part (c[4:8] b + c[8:12]), as both torch paths compute it */

@@ -84,10 +84,9 @@ typedef struct {
 /* Mirrored by torchface._native.CoverProblem (ctypes): keep the two in the same order; see coverage.h. */
 typedef struct {
     int B, F, H, W;
-    double near;
-    const void *coefficients, *ray_a, *ray_b;
-    const uint8_t *skip, *front;
-    const int64_t *x_first, *x_last, *y_first, *y_last;
+    double near, fx, fy, cx, cy, margin, max_projected;
+    const void *coefficients, *ray_a, *ray_b, *tri;
+    const uint8_t *usable, *front;
     int64_t *pix_to_face;
     int8_t *facing;
     void *depth;
@@ -209,7 +208,7 @@ typedef struct {
 static _Thread_local void *tf_workspace = NULL;
 static _Thread_local size_t tf_workspace_size = 0;
 
-int tf_abi_version(void) { return 19; }
+int tf_abi_version(void) { return 20; }
 
 /* A kernel's streams on OpenMP's threads (at most threads of them), where built with -fopenmp: the runtime torch's
  * own threads use (torchface._native.run_chunks). The streams go in chunks of about batch / (8 threads) (at least

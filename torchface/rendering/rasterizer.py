@@ -580,22 +580,21 @@ def _zbuffer(pix: Tensor, depth: Tensor, face: Tensor, num_pixels: int) -> tuple
 
 
 def _native_cover(
-    coeffs: Tensor, front: Tensor, skip: Tensor, x_first: Tensor, x_last: Tensor, y_first: Tensor, y_last: Tensor,
-    ray_a: Tensor, ray_b: Tensor, B: int, F: int, H: int, W: int, near: float,
-    windows: Sequence[tuple[int, int, int]] | None = None, scratch: Scratch | None = None,
+    coeffs: Tensor, front: Tensor, usable: Tensor, tri: Tensor, intrinsics: Intrinsics, ray_a: Tensor, ray_b: Tensor,
+    B: int, F: int, near: float, windows: Sequence[tuple[int, int, int]] | None = None, scratch: Scratch | None = None,
 ) -> tuple[Tensor, Tensor]:
     """``pix_to_face (B H W,)`` int64 and ``facing (B H W,)`` int8 by the native kernel (``_native/coverage.h``):
-    every pixel of each ``(sample, face)`` row's box ``[x_first, x_last] x [y_first, y_last]`` (int64 ``(B F,)``
-    each, inside the image) tested with the torch code's arithmetic, unless ``skip``. ``windows``: per group of
-    consecutive samples, ``(count, height, width)``: those samples' images are the top-left ``height x width`` of
-    the ``H x W`` one, each stored whole (C order) after the previous sample's: outputs of ``sum(count height
-    width)`` elements (:func:`_cover_windows`). ``scratch``: the outputs' and the kernel's depth buffer's memory
-    (None: new tensors)."""
+    every pixel of each ``usable`` ``(sample, face)`` row's box (the corners of ``tri (B F, 3, 3)`` projected
+    through ``intrinsics`` as :func:`_project_corners` and :func:`_cover` make it, in the kernel) tested with the
+    torch code's arithmetic. ``windows``: per group of consecutive samples, ``(count, height, width)``: those
+    samples' images are the top-left ``height x width`` of the ``H x W`` one, each stored whole (C order) after the
+    previous sample's: outputs of ``sum(count height width)`` elements (:func:`_cover_windows`). ``scratch``: the
+    outputs' and the kernel's depth buffer's memory (None: new tensors)."""
     from torchface import _native
 
-    dtype = coeffs.dtype
-    args = [x.contiguous() for x in (coeffs, ray_a, ray_b, skip.to(torch.uint8), front.to(torch.uint8), x_first,
-                                     x_last, y_first, y_last)]  # fmt: skip
+    dtype, H, W = coeffs.dtype, intrinsics.height, intrinsics.width
+    # (bool tensors are bytes 0 / 1: the kernel reads them as uint8 without a conversion)
+    args = [x.contiguous() for x in (coeffs, ray_a, ray_b, tri, usable, front)]
     sizes = starts = None
     total = B * H * W
     if windows is not None:
@@ -612,8 +611,11 @@ def _native_cover(
         pix_to_face = scratch("pix_to_face", (total,), torch.int64)
         facing = scratch("facing", (total,), torch.int8)
         depth = scratch("depth", (total,), dtype)
-    names = ("coefficients", "ray_a", "ray_b", "skip", "front", "x_first", "x_last", "y_first", "y_last")
-    prob = _native.CoverProblem(B=B, F=F, H=H, W=W, near=float(near), **{n: x.data_ptr() for n, x in zip(names, args)},
+    names = ("coefficients", "ray_a", "ray_b", "tri", "usable", "front")
+    prob = _native.CoverProblem(B=B, F=F, H=H, W=W, near=float(near), fx=float(intrinsics.fx),
+                                fy=float(intrinsics.fy), cx=float(intrinsics.cx), cy=float(intrinsics.cy),
+                                margin=_SPAN_MARGIN_PX, max_projected=_MAX_PROJECTED_PX,
+                                **{n: x.data_ptr() for n, x in zip(names, args)},
                                 pix_to_face=pix_to_face.data_ptr(), facing=facing.data_ptr(), depth=depth.data_ptr(),
                                 sizes=None if sizes is None else sizes.data_ptr(),
                                 starts=None if starts is None else starts.data_ptr())  # fmt: skip
@@ -672,21 +674,11 @@ def _cover(
     ray_b = (torch.arange(H, device=device, dtype=dtype) - intrinsics.cy) / intrinsics.fy
 
     with torch.no_grad():
-        # Level 1: the image rows each (sample, face) may cover.
-        u, v, wide, behind = _project_corners(tri.detach().reshape(-1, 3, 3), intrinsics, near)
-        m = _SPAN_MARGIN_PX
-        zero = torch.zeros((), dtype=torch.int64, device=device)
-        x_first = torch.where(wide, zero, torch.ceil(u.amin(-1) - m).long())
-        x_last = torch.where(wide, zero + W - 1, torch.floor(u.amax(-1) + m).long())
-        y_first = torch.where(wide, zero, torch.ceil(v.amin(-1) - m).long()).clamp(0, H)
-        y_last = torch.where(wide, zero + H - 1, torch.floor(v.amax(-1) + m).long()).clamp(-1, H - 1)
-        skip = behind | ~usable | (x_first > W - 1) | (x_last < 0)
-        heights = torch.where(skip, zero, (y_last - y_first + 1).clamp_min(0))
-        box_first = x_first.clamp(0, W)
         if use_native(backend, (verts_cam.detach(),), "rasterizer"):  # the same coverage, bit for bit (tests)
+            # Each row's box made in the kernel: the ~70 small torch operations below cost 3-7% of a one-stream step.
             pix_to_face, facing = _native_cover(
-                coeffs.detach(), front, skip | (heights == 0), box_first, x_last.clamp(-1, W - 1), y_first, y_last,
-                ray_a, ray_b, B, F, H, W, near, windows, None if pixels or windows is not None else scratch,
+                coeffs.detach(), front, usable, tri.detach(), intrinsics, ray_a, ray_b, B, F, near, windows,
+                None if pixels or windows is not None else scratch,
             )  # fmt: skip
             if windows is not None:  # each group's samples stored whole at their window's size, one after another
                 parts, start, at = [], 0, 0
@@ -703,6 +695,17 @@ def _cover(
             pix_b = torch.div(pix_idx, H * W, rounding_mode="floor")
             pix_bf = pix_b * F + pix_to_face.index_select(0, pix_idx)
             return coverage, (pix_idx, pix_b, pix_bf)
+        # Level 1: the image rows each (sample, face) may cover.
+        u, v, wide, behind = _project_corners(tri.detach().reshape(-1, 3, 3), intrinsics, near)
+        m = _SPAN_MARGIN_PX
+        zero = torch.zeros((), dtype=torch.int64, device=device)
+        x_first = torch.where(wide, zero, torch.ceil(u.amin(-1) - m).long())
+        x_last = torch.where(wide, zero + W - 1, torch.floor(u.amax(-1) + m).long())
+        y_first = torch.where(wide, zero, torch.ceil(v.amin(-1) - m).long()).clamp(0, H)
+        y_last = torch.where(wide, zero + H - 1, torch.floor(v.amax(-1) + m).long()).clamp(-1, H - 1)
+        skip = behind | ~usable | (x_first > W - 1) | (x_last < 0)
+        heights = torch.where(skip, zero, (y_last - y_first + 1).clamp_min(0))
+        box_first = x_first.clamp(0, W)
         box_w = (x_last.clamp(-1, W - 1) - box_first + 1).clamp_min(0)
         area = heights * box_w
         if int(area.sum()) <= _BBOX_MAX_PAIRS:  # few candidates: whole boxes (module docstring)
