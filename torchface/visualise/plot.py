@@ -205,15 +205,11 @@ def plot_track(
             if not _fits(fig, list(axes), text, canvas.get_renderer()):
                 fig.tight_layout()
                 fig.savefig(tmp, dpi=100, format=fmt, **kwargs)
-        except OSError as exc:  # a full disk, a folder not made yet (the error named the temporary file alone:
-            tmp.unlink(missing_ok=True)  # "No such file or directory: '.../plot.partial.png'")
+            os.replace(tmp, p)
+        except OSError as exc:  # a full disk, a folder not made yet, a folder at the name: the error named the
+            tmp.unlink(missing_ok=True)  # temporary file alone ("No such file or directory: '.../plot.partial.png'")
             raise OutputError(f"{p}: cannot write the plot ({exc.strerror or exc})") from None
         except BaseException:  # an interruption: no partial file left behind
             tmp.unlink(missing_ok=True)
             raise
-    try:
-        os.replace(tmp, p)
-    except OSError as exc:  # (a folder at the name: "IsADirectoryError: ... 'plot.partial.png' -> 'plot.png'")
-        tmp.unlink(missing_ok=True)
-        raise OutputError(f"{p}: cannot write the plot ({exc.strerror or exc})") from None
     return p
