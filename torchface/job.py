@@ -167,7 +167,9 @@ from torchface.io.table import (
     POSE_COLUMNS, ROTATION_COLUMNS, SMOOTH_COLUMNS, TrackCsvWriter, partial_path, pose_values, read_back, read_track_csv,
     result_rows, track_columns,
 )
-from torchface.io.video import FrameReader, image_files, open_frames, opencv_path
+from torchface.io.video import (
+    IMAGE_SUFFIXES, VIDEO_SUFFIXES, FrameReader, image_files, open_frames, opencv_path,
+)  # fmt: skip
 from torchface.model.candide import load_candide3
 from torchface.model.face_model import FaceModel
 from torchface.model.model_file import face_model_digest, load_face_model
@@ -814,10 +816,11 @@ def _frame_meshes(folder: Path) -> list[Path]:
     return [f for f in folder.glob("*.ply") if re.fullmatch(r"\d{6,}\.ply", f.name) and f.is_file()]
 
 
-#: Suffixes of files a run writes or reads: an output folder not made yet that ends in one (``--out results.csv``)
-#: is likely meant as a file, and is warned of (:func:`_check_out_dir`; made all the same: a folder may be so named).
+#: Suffixes of files a run writes or reads (the inputs' videos, arrays and images, and its outputs' and landmarks'
+#: files): an output folder not made yet that ends in one (``--out results.csv``) is likely meant as a file, and is
+#: warned of (:func:`_check_out_dir`; made all the same: a folder may be so named).
 _FILE_SUFFIXES: frozenset[str] = frozenset(
-    (".csv", ".json", ".txt", ".mp4", ".avi", ".mkv", ".mov", ".mpg", ".png", ".jpg", ".jpeg", ".ply", ".obj", ".npy")
+    VIDEO_SUFFIXES + IMAGE_SUFFIXES + (".csv", ".json", ".txt", ".pts", ".ply", ".obj")
 )
 
 

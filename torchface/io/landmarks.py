@@ -59,6 +59,7 @@ import codecs
 import csv
 import json
 import math
+import numbers
 import os
 import re
 from decimal import MAX_EMAX, MIN_EMIN, Context, Decimal, DecimalException
@@ -727,8 +728,6 @@ def _check_frame_size(width: object, height: object) -> None:
     """Refuse a frame size that is not whole positive pixels (``"160"`` from a command line's text met a bare
     ``TypeError`` in the arithmetic; ``160.5`` was taken as a frame's edge at 160.5). A ``TypeError``, the
     constructor's of :class:`~torchface.geometry.Intrinsics` (a caller's mistake, not the file's)."""
-    import numbers
-
     for name, value in (("width", width), ("height", height)):
         if isinstance(value, bool) or not isinstance(value, numbers.Integral) or int(value) < 1:
             raise TypeError(f"{name} must be a whole positive number of pixels (an int), got {value!r}")

@@ -922,9 +922,8 @@ def check_detector(detector: LandmarkDetector, frames: Tensor, model: FaceModel 
         raise TypeError(f"model must be a FaceModel or None (CANDIDE-3), got {type(model).__name__}")
     check_frames(frames, values=True, row_stride=STEP_VALUE_ROW_STRIDE)
     frames = frames.detach().to(dtype=model.dtype, device=model.device)  # (managed_step's frames)
-    # (the streams asked, all of them, as a restart picks them: a copy, which the detector may change)
-    every = torch.arange(frames.shape[0], device=frames.device)
-    return _ask_detector(detector, frames[every], model.num_landmarks)[0]
+    # (a copy, as a restart's frames[index] is, which the detector may change)
+    return _ask_detector(detector, frames.clone(memory_format=torch.contiguous_format), model.num_landmarks)[0]
 
 
 #: The fewest valid template points an entry needs at a pyramid level for the recovery search to place it there
