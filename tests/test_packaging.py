@@ -63,7 +63,7 @@ def test_the_source_distribution_carries_the_tests_scripts_and_docs(tmp_path):
               if p.is_file() and "__pycache__" not in p.parts and p.suffix != ".pyc"}  # fmt: skip
     # (docs/: the pages tests/test_readme.py reads beside README.md; the sdist had none, so that test failed there)
     assert "tests/tracker/test_native.py" in wanted and "scripts/_venv.sh" in wanted and "docs/cli.md" in wanted
-    assert "LICENSE" in names
+    assert "LICENSE" in names and "CHANGELOG.md" in names  # (the README links to the changelog)
     assert not wanted - names, sorted(wanted - names)[:10]
     assert not any(name.endswith(".pyc") for name in names)
 
