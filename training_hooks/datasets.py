@@ -276,7 +276,7 @@ class RepeatedEpochWarning(UserWarning):
     epoch's order every epoch. Warned once per dataset, by the process that began the iteration (a ``DataLoader``
     worker prints it to its stderr), when the dataset can tell (module docstring, "Epochs"). Call
     ``data.set_epoch(epoch)`` before each epoch (:class:`~training_hooks.lightning.TrackedFaceDataModule`'s loaders
-    do), or, to repeat an order deliberately, ``data.set_epoch(data.epoch)`` before the iteration."""
+    do under a trainer), or, to repeat an order deliberately, ``data.set_epoch(data.epoch)`` before the iteration."""
 
 
 class RankBalance(enum.Enum):
@@ -1975,10 +1975,10 @@ class VideoDataset(IterableDataset):
         warnings.warn(
             f"{type(self).__name__}: an iteration began in the same shuffled order as the last one (epoch "
             f"{self.epoch}, DatasetConfig.shuffle_buffer={self.config.shuffle_buffer}): no set_epoch came between "
-            "them, so every epoch of this loop repeats one order. Call data.set_epoch(epoch) before each epoch (or use "
-            "training_hooks.lightning.TrackedFaceDataModule's loaders, which do); to repeat the order deliberately (a "
-            "validation set: shuffle_buffer=0 shuffles nothing), call data.set_epoch(data.epoch) before it. Warned "
-            "once per dataset",
+            "them, so every epoch of this loop repeats one order. Call data.set_epoch(epoch) before each epoch (or "
+            "train with a Lightning trainer and training_hooks.lightning.TrackedFaceDataModule, whose loaders do); to "
+            "repeat the order deliberately (a validation set: shuffle_buffer=0 shuffles nothing), call "
+            "data.set_epoch(data.epoch) before it. Warned once per dataset",
             RepeatedEpochWarning,
             stacklevel=4,
         )

@@ -110,11 +110,12 @@ class TrackingQualityCallback(pl.Callback):
 
 class _EpochLoader(DataLoader):
     """A ``DataLoader`` that hands its dataset ``epoch()`` (:meth:`VideoDataset.set_epoch
-    <training_hooks.datasets.VideoDataset.set_epoch>`; None: the epoch it has, the same order on purpose) each time
-    an epoch's iteration starts (:class:`TrackedFaceDataModule`'s loaders: the training one the trainer's epoch, the
-    validation one None). Each iteration so follows a ``set_epoch``, and none is told it repeats an order
-    (:class:`~training_hooks.datasets.RepeatedEpochWarning`: a shuffled validation set, or a loader used without a
-    trainer, repeats it by design)."""
+    <training_hooks.datasets.VideoDataset.set_epoch>`; None: no call) each time an epoch's iteration starts
+    (:class:`TrackedFaceDataModule`'s loaders: the training one the trainer's epoch, None without a trainer; the
+    validation one the epoch its dataset has, the same order on purpose). An iteration that follows a ``set_epoch``
+    is not told it repeats an order (:class:`~training_hooks.datasets.RepeatedEpochWarning`: a shuffled validation
+    set repeats it by design); the training loader without a trainer leaves the epoch to the caller's loop, as a
+    plain ``DataLoader`` does, and a loop that forgets ``set_epoch`` is told."""
 
     def __init__(self, *args: Any, epoch: Callable[[], int | None], **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
@@ -122,14 +123,16 @@ class _EpochLoader(DataLoader):
 
     def __iter__(self) -> Iterator[Any]:  # type: ignore[override]
         epoch = self._epoch_of()
-        dataset: VideoDataset = self.dataset  # type: ignore[assignment]
-        dataset.set_epoch(dataset.epoch if epoch is None else epoch)
+        if epoch is not None:
+            dataset: VideoDataset = self.dataset  # type: ignore[assignment]
+            dataset.set_epoch(epoch)
         return super().__iter__()
 
 
-def _kept_epoch() -> None:
-    """The validation loader's epoch (:class:`_EpochLoader`): the one its dataset has."""
-    return None
+def _kept_epoch(dataset: VideoDataset) -> int:
+    """The validation loader's epoch (:class:`_EpochLoader`, through ``functools.partial``): the one its dataset
+    has."""
+    return dataset.epoch
 
 
 class _OptionalValidation:
@@ -211,8 +214,10 @@ class TrackedFaceDataModule(pl.LightningDataModule):
     every epoch with the trainer's defaults too (Lightning builds the loader once and calls ``set_epoch`` on samplers
     alone, which an iterable dataset's loader has none of: every epoch repeated the first one's order unless the
     trainer had ``reload_dataloaders_every_n_epochs=1``). The validation loader passes its dataset's own epoch
-    (the same order each time, on purpose), and so does the training loader without a trainer: neither is told
-    :class:`~training_hooks.datasets.RepeatedEpochWarning`.
+    (the same order each time, on purpose): neither is told
+    :class:`~training_hooks.datasets.RepeatedEpochWarning`. Without a trainer the training loader sets no epoch, as a
+    plain ``DataLoader``: a loop of its own calls ``module.train.set_epoch(epoch)`` before each epoch, and one that
+    forgets is told (it repeated the first epoch's order silently before).
 
     Distributed (DDP) training: each rank's loaders yield that rank's share of the videos (video ``i`` -> rank
     ``i % world_size``, :mod:`training_hooks.datasets`, "Sharding"; the datasets are iterable, so Lightning adds no
@@ -294,7 +299,8 @@ class TrackedFaceDataModule(pl.LightningDataModule):
             drop_last=self.drop_last and epochs, timeout=self.timeout, persistent_workers=self.persistent_workers,
             prefetch_factor=self.prefetch_factor, multiprocessing_context=self.multiprocessing_context,
         )  # fmt: skip
-        return _EpochLoader(dataset, epoch=self._trainer_epoch if epochs else _kept_epoch, **kwargs)
+        epoch = self._trainer_epoch if epochs else functools.partial(_kept_epoch, dataset)
+        return _EpochLoader(dataset, epoch=epoch, **kwargs)
 
     def _trainer_epoch(self) -> int | None:
         """The attached trainer's current epoch, or None without a trainer."""

@@ -148,7 +148,8 @@ def test_the_datamodules_loaders_never_tell_a_repeated_order(clips, config):
     """RepeatedEpochWarning tells a plain loop that repeats a shuffled order (no ``set_epoch`` between two
     iterations). The module's loaders call ``set_epoch`` before each iteration: the training one the trainer's
     epoch, the validation one its dataset's own (a shuffled validation set, iterated by the sanity check and every
-    epoch in one order: by design), and so does the training one without a trainer. None is told."""
+    epoch in one order: by design), with a trainer and without. None is told. (Without a trainer the training loader
+    leaves the epoch to the loop: test_a_plain_loop_over_the_datamodules_training_loader.)"""
     from training_hooks import RepeatedEpochWarning
     from training_hooks.lightning import TrackedFaceDataModule
 
@@ -164,13 +165,40 @@ def test_the_datamodules_loaders_never_tell_a_repeated_order(clips, config):
         trainer.fit(TinyModel(), datamodule=TrackedFaceDataModule(data, val=val, batch_size=4))
         module = TrackedFaceDataModule(data, val=val, batch_size=4)  # no trainer
         train, validation = module.train_dataloader(), module.val_dataloader()
-        for _ in range(2):
+        for epoch in range(2):
+            module.train.set_epoch(epoch)  # (the loop's own epochs)
             assert list(train) and list(validation)
     assert not [w for w in caught if issubclass(w.category, RepeatedEpochWarning)]
     assert val.epoch == 0
     with pytest.warns(RepeatedEpochWarning):  # (a plain loop over either is told)
         for _ in range(2):
             list(DataLoader(val, batch_size=4))
+
+
+def test_a_plain_loop_over_the_datamodules_training_loader(clips, config):
+    """Without a trainer the training loader set its dataset's own epoch before each iteration, so a plain loop
+    over ``module.train_dataloader()`` that forgot ``set_epoch`` repeated the first epoch's shuffled order every
+    epoch without a word. It now sets none, as a plain ``DataLoader``: the forgotten ``set_epoch`` is told, and the
+    loop's own ``module.train.set_epoch(epoch)`` draws a new order each epoch."""
+    from training_hooks import RepeatedEpochWarning
+    from training_hooks.lightning import TrackedFaceDataModule
+
+    shuffled = replace(config, shuffle_buffer=8)
+    videos, landmarks = [c.video for c in clips[:2]], [c.landmarks for c in clips[:2]]
+    module = TrackedFaceDataModule(VideoDataset(videos, landmarks, shuffled), batch_size=4)
+    loader = module.train_dataloader()
+    with pytest.warns(RepeatedEpochWarning, match="set_epoch"):
+        orders = [[(int(v), int(f)) for b in loader for v, f in zip(b["video"], b["frame"])] for _ in range(2)]
+    assert orders[0] == orders[1] and module.train.epoch == 0  # (the order the warning tells of)
+    module = TrackedFaceDataModule(VideoDataset(videos, landmarks, shuffled), batch_size=4)
+    loader = module.train_dataloader()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RepeatedEpochWarning)
+        orders = []
+        for epoch in range(2):
+            module.train.set_epoch(epoch)
+            orders.append([(int(v), int(f)) for b in loader for v, f in zip(b["video"], b["frame"])])
+    assert orders[0] != orders[1] and sorted(orders[0]) == sorted(orders[1])
 
 
 def test_datamodule_passes_the_loader_settings_through(clips, config):
