@@ -1051,7 +1051,10 @@ def _kept_targets(targets: object, videos: tuple[Path, ...]) -> Tensor | None:
             raise ValueError(f"targets must have one label per video ({n}), got {array.shape[0]} (an array of shape "
                              f"{tuple(array.shape)})")  # fmt: skip
         # (an object array, a pandas column's .values: its entries of any kind, one by one)
-        stacked = _stacked_targets(list(array), videos) if array.dtype.kind == "O" else _target_array(array, "targets")
+        if array.dtype.kind == "O":
+            stacked = _stacked_targets(list(array), videos)
+        else:
+            stacked = _target_array(array, "targets")
     else:
         if isinstance(targets, (str, bytes, Mapping)) or not isinstance(targets, Sequence):
             hint = (": one label per video in the order of the videos, [labels[v] for v in videos]"
@@ -1069,7 +1072,8 @@ def _kept_targets(targets: object, videos: tuple[Path, ...]) -> Tensor | None:
             i = int((~finite).nonzero()[0])
             value = stacked[i]
             if np.isfinite(value).all():  # (a float64 past float32's range)
-                said = f"{'is' if value.ndim == 0 else 'holds'} {np.abs(value).max():g}, past the range of {kept.dtype} (the default dtype)"
+                said = (f"{'is' if value.ndim == 0 else 'holds'} {np.abs(value).max():g}, past the range of "
+                        f"{kept.dtype} (the default dtype)")  # fmt: skip
             else:
                 said = ("is " if value.ndim == 0 else "holds ") + ("NaN" if np.isnan(value).any() else "inf")
             raise ValueError(
