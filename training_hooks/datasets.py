@@ -149,9 +149,9 @@ they are of, atomic writes, damaged files tracked again; not the videos' labels,
 where it came from (``cached``), and :attr:`VideoDataset.stats` counts hits and misses in the current process.
 
 Items are dicts of tensors (:meth:`TrackedSequence.item <training_hooks.transforms.TrackedSequence.item>`: ``frame``,
-the frame's number in the video) plus ``video`` ``()`` int64 (index in the dataset's list), with ``targets=`` its
-video's label ``target`` (``()`` or the label's shape; one per clip, not per frame) and ``cached`` ``()``
-bool. Frame items stack with PyTorch's default collate; clip items of different lengths with
+the frame's number in the video) plus ``video`` ``()`` int64 (index in the dataset's list), ``cached`` ``()`` bool
+and, with ``targets=``, ``target``: its video's label (``()`` or the label's shape; one per clip, not per frame,
+as ``video``). Frame items stack with PyTorch's default collate; clip items of different lengths with
 :func:`~training_hooks.collate.collate_clips`.
 
 Example:
