@@ -231,6 +231,7 @@ __all__ = [
     "RepeatedEpochWarning",
     "ShortVideoWarning",
     "SkippedVideoWarning",
+    "Targets",
     "VideoDataset",
     "clip_bounds",
     "loader_throughput",
@@ -247,6 +248,10 @@ LandmarkSource = np.ndarray | Tensor | str | os.PathLike
 #: Python 3.14) receives it pickled: a module-level function or an instance of a module-level class (a lambda, or a
 #: function or class defined inside a function, is a ``pickle.PicklingError`` naming it then).
 Detector = Callable[[np.ndarray], "np.ndarray | None"]
+#: Labels of a dataset's videos (:class:`VideoDataset`'s ``targets``), one per video in the order of the videos: a
+#: sequence of ints (class indices), floats, or arrays / tensors of one shape; or one array or tensor whose first
+#: dimension is the videos' (``(N,)``, ``(N, ...)``).
+Targets = Sequence[int | float | np.ndarray | Tensor] | np.ndarray | Tensor
 
 
 class DistributedWarning(UserWarning):
@@ -974,11 +979,6 @@ def _kept_landmarks(
         raise InputError(f"{where}: expected {count} {what}, got {shape[0]} ({hint})")
     return source
 
-
-#: Labels of a dataset's videos (:class:`VideoDataset`'s ``targets``), one per video in the order of the videos: a
-#: sequence of ints (class indices), floats, or arrays / tensors of one shape; or one array or tensor whose first
-#: dimension is the videos' (``(N,)``, ``(N, ...)``).
-Targets = Sequence[int | float | np.ndarray | Tensor] | np.ndarray | Tensor
 
 #: What a label given as a class name is told (a ``str`` target).
 _CLASS_NAMES_HINT: str = (
