@@ -1042,6 +1042,8 @@ def _kept_targets(targets: object, videos: tuple[Path, ...]) -> Tensor | None:
     if targets is None:
         return None
     n = len(videos)
+    if not isinstance(targets, (Tensor, np.ndarray, str, bytes, Mapping)) and hasattr(targets, "__array__"):
+        targets = np.asarray(targets)  # (a pandas column, df["label"], as NumPy reads it)
     if isinstance(targets, (Tensor, np.ndarray)):
         array = _as_numpy(targets) if isinstance(targets, Tensor) else np.asarray(targets)
         if array.ndim == 0:
@@ -1099,6 +1101,7 @@ def _stacked_targets(targets: Sequence[object], videos: tuple[Path, ...]) -> np.
             )
     return np.stack(entries)  # (ints with floats: float64)
 
+
 def clip_bounds(
     num_frames: int, clip_length: int | None, stride: int | None, keep_short: bool
 ) -> list[tuple[int, int]]:
@@ -1151,15 +1154,16 @@ class VideoDataset(IterableDataset):
             ``--detector`` takes them).
         config: :class:`DatasetConfig`.
         targets: one label per video, in the order of ``videos`` (:data:`Targets`): a sequence of ints (class
-            indices), floats, or arrays / tensors of one shape, or one ``(N,)`` / ``(N, ...)`` array or tensor. Each
-            item of video ``i`` then holds ``target``, ``targets[i]`` as a tensor: int64 for ints, the default float
-            dtype (``torch.get_default_dtype()`` when the dataset is made) for floats (a sequence with any float is
-            all floats); one per item, a clip's too (not per frame), as ``video``, so a batch's ``target`` is
-            ``(B,)`` or ``(B, ...)`` with the default collate and with :func:`~training_hooks.collate.collate_clips`
-            alike. Kept in :attr:`targets` (a copy). It follows its video wherever the video's items go (any
-            ``DataLoader`` worker or rank, shuffled, repeated by :attr:`RankBalance.PAD`) and is not part of the
-            cache key (the cache holds tracking results: one cache serves datasets with and without labels). None
-            (the default): items without ``target``.
+            indices), floats, or arrays / tensors of one shape, or one ``(N,)`` / ``(N, ...)`` array or tensor (or
+            what NumPy reads as one, ``np.asarray``: a pandas column). Each item of video ``i`` then holds
+            ``target``, ``targets[i]`` as a tensor: int64 for ints, the default float dtype
+            (``torch.get_default_dtype()`` when the dataset is made) for floats (a sequence with any float is all
+            floats); one per item, a clip's too (not per frame), as ``video``, so a batch's ``target`` is ``(B,)`` or
+            ``(B, ...)`` with the default collate and with :func:`~training_hooks.collate.collate_clips` alike. Kept
+            in :attr:`targets` (a copy). It follows its video wherever the video's items go (any ``DataLoader``
+            worker or rank, shuffled, repeated by :attr:`RankBalance.PAD`) and is not part of the cache key (the
+            cache holds tracking results: one cache serves datasets with and without labels). None (the default):
+            items without ``target``.
 
     Raises:
         TypeError, ValueError: bad arguments (checked here; also a missing or damaged face model file of

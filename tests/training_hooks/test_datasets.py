@@ -1948,3 +1948,9 @@ def test_bad_labels_are_refused_when_the_dataset_is_made_naming_targets(clips, c
         VideoDataset(videos, lms, config, [0, 1, 2])  # type: ignore[misc]
     assert VideoDataset(videos, lms, config, targets=None).targets is None
     assert VideoDataset(videos, lms, config, targets=np.array([1, 0, 1], dtype=np.uint8)).targets.dtype == torch.int64
+
+    class Column:  # (what NumPy reads through __array__, as a pandas column, df["label"])
+        def __array__(self, dtype=None, copy=None):
+            return np.array([0.5, 2.0, 1.0])
+
+    assert VideoDataset(videos, lms, config, targets=Column()).targets.tolist() == [0.5, 2.0, 1.0]
