@@ -73,7 +73,8 @@ def collate_clips(
     Args:
         batch: ``B`` clip items (dicts of tensors). Under ``per_frame_keys`` each holds ``(T_i, ...)`` with the
             same ``T_i`` across those keys of an item and the same trailing shape across items; every other key
-            (``video``, ``cached``, ``shape_coeffs``, a label, ...) is batched with ``default_collate``.
+            (``video``, ``target``, ``cached``, ``shape_coeffs``, a label of your own, ...) is batched with
+            ``default_collate``.
         per_frame_keys: the keys with a leading time axis (default
             :data:`~training_hooks.transforms.PER_FRAME_KEYS`; keys an item lacks are skipped, so add your own
             per-frame keys to them: ``(*PER_FRAME_KEYS, "frame_label")``; given alone they replace them).

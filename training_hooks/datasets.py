@@ -145,12 +145,13 @@ a later process's first dataset, once its maker is certainly gone) gives it.
 Cache: with :attr:`DatasetConfig.cache_dir`, a video's :class:`~training_hooks.transforms.TrackedSequence`
 (parameters, confidence, status and the normalised faces, uint8 by default) is stored after tracking and read
 back in later epochs (:mod:`training_hooks.cache`: keys of the content, the config, the landmarks and the frame
-they are of, atomic writes, damaged files tracked again). Each item says where it came from (``cached``), and
-:attr:`VideoDataset.stats` counts hits and misses in the current process.
+they are of, atomic writes, damaged files tracked again; not the videos' labels, ``targets``). Each item says
+where it came from (``cached``), and :attr:`VideoDataset.stats` counts hits and misses in the current process.
 
 Items are dicts of tensors (:meth:`TrackedSequence.item <training_hooks.transforms.TrackedSequence.item>`: ``frame``,
-the frame's number in the video) plus ``video`` ``()`` int64 (index in the dataset's list) and ``cached`` ``()``
-bool. Frame items stack with PyTorch's default collate; clip items of different lengths with
+the frame's number in the video) plus ``video`` ``()`` int64 (index in the dataset's list), ``cached`` ``()`` bool
+and, with ``targets=``, ``target``: its video's label (``()`` or the label's shape; one per clip, not per frame,
+as ``video``). Frame items stack with PyTorch's default collate; clip items of different lengths with
 :func:`~training_hooks.collate.collate_clips`.
 
 Example:
@@ -178,7 +179,7 @@ import tempfile
 import time
 import types
 import warnings
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from multiprocessing.reduction import ForkingPickler
@@ -230,6 +231,7 @@ __all__ = [
     "RepeatedEpochWarning",
     "ShortVideoWarning",
     "SkippedVideoWarning",
+    "Targets",
     "VideoDataset",
     "clip_bounds",
     "loader_throughput",
@@ -246,6 +248,10 @@ LandmarkSource = np.ndarray | Tensor | str | os.PathLike
 #: Python 3.14) receives it pickled: a module-level function or an instance of a module-level class (a lambda, or a
 #: function or class defined inside a function, is a ``pickle.PicklingError`` naming it then).
 Detector = Callable[[np.ndarray], "np.ndarray | None"]
+#: Labels of a dataset's videos (:class:`VideoDataset`'s ``targets``), one per video in the order of the videos: a
+#: sequence of ints (class indices), floats, or arrays / tensors of one shape; or one array or tensor whose first
+#: dimension is the videos' (``(N,)``, ``(N, ...)``).
+Targets = Sequence[int | float | np.ndarray | Tensor] | np.ndarray | Tensor
 
 
 class DistributedWarning(UserWarning):
@@ -974,6 +980,133 @@ def _kept_landmarks(
     return source
 
 
+#: What a label given as a class name is told (a ``str`` target).
+_CLASS_NAMES_HINT: str = (
+    "map class names to ints first, e.g. classes = {name: i for i, name in enumerate(sorted(set(names)))} and "
+    "targets=[classes[name] for name in names]"
+)
+#: What a ``bool`` label is told: 0 / 1 as ints or floats, as the loss it feeds takes them.
+_BOOL_HINT: str = "give 0 / 1 as ints (a class index, for CrossEntropyLoss) or as floats (for BCEWithLogitsLoss)"
+
+
+def _target_array(array: np.ndarray, where: str) -> np.ndarray:
+    """``array`` (a label, or all of them: ``where`` names it for a message) as int64 (ints) or float64 (floats),
+    refusing what is not a real number: bools (:data:`_BOOL_HINT`), strings (:data:`_CLASS_NAMES_HINT`), complex,
+    objects, dates; an unsigned value past int64."""
+    kind = array.dtype.kind
+    if kind == "b":
+        raise TypeError(f"{where} holds bools: {_BOOL_HINT}")
+    if kind in "US" or kind == "O" and any(isinstance(v, (str, bytes)) for v in array.flat):
+        raise TypeError(f"{where} holds strings: {_CLASS_NAMES_HINT}")
+    if kind in "iu":
+        if kind == "u" and array.size and int(array.max()) > np.iinfo(np.int64).max:
+            raise ValueError(f"{where} holds {int(array.max())}, past int64's range (the labels' dtype)")
+        return array.astype(np.int64)
+    if kind == "f":
+        return array.astype(np.float64)
+    if kind == "c":
+        raise TypeError(f"{where} holds complex numbers (dtype {array.dtype}): give real ones")
+    raise TypeError(f"{where} must be ints or floats, got dtype {array.dtype}")
+
+
+def _one_target(value: object, where: str) -> np.ndarray:
+    """One video's label (an entry of a sequence of ``targets``, named by ``where``) as :func:`_target_array`
+    gives it."""
+    if value is None:
+        raise TypeError(f"{where} is None: every video needs a label (leave a video without one out of the dataset)")
+    if isinstance(value, (bool, np.bool_)):  # (before int: True is an int)
+        raise TypeError(f"{where} is a bool ({value}): {_BOOL_HINT}")
+    if isinstance(value, (str, bytes)):
+        raise TypeError(f"{where} is a {type(value).__name__} ({value!r}): {_CLASS_NAMES_HINT}")
+    if isinstance(value, Tensor):
+        return _target_array(_as_numpy(value), where)
+    if not isinstance(value, (int, float, np.ndarray, np.generic, list, tuple)):
+        raise TypeError(f"{where} must be an int, a float, or an array or tensor of them, got {type(value).__name__}")
+    try:
+        array = np.asarray(value)
+    except ValueError as exc:  # (nested lists of several lengths)
+        raise ValueError(f"{where} is not an array of one shape ({exc})") from None
+    if array.dtype.kind == "O" and isinstance(value, int):  # (a Python int past 64 bits)
+        raise ValueError(f"{where} is {value}, past int64's range (the labels' dtype)")
+    return _target_array(array, where)
+
+
+def _kept_targets(targets: object, videos: tuple[Path, ...]) -> Tensor | None:
+    """``targets`` (:class:`VideoDataset`) as the dataset keeps them: one ``(N, ...)`` tensor of its own (a copy: the
+    caller's array or tensor, changed later, changes no item), int64 for integer labels and the default float dtype
+    (``torch.get_default_dtype()`` when the dataset is made) for floating ones, any float among a sequence's labels
+    making them all floats (as ``torch.tensor([1, 0.5])``); None for None. Refused, naming ``targets`` and the
+    entry and video at fault: another count than the videos', a single label (0-d), a mapping or a string, entries
+    of different shapes, None, bools, strings (class names: map them to ints), complex numbers and other objects
+    (``TypeError``), NaN and infinite values (``ValueError``: a label must be finite)."""
+    if targets is None:
+        return None
+    n = len(videos)
+    if not isinstance(targets, (Tensor, np.ndarray, str, bytes, Mapping)) and hasattr(targets, "__array__"):
+        targets = np.asarray(targets)  # (a pandas column, df["label"], as NumPy reads it)
+    if isinstance(targets, (Tensor, np.ndarray)):
+        array = _as_numpy(targets) if isinstance(targets, Tensor) else np.asarray(targets)
+        if array.ndim == 0:
+            raise TypeError(f"targets must hold one label per video ({n}), got a 0-d {type(targets).__name__}: one "
+                            f"label for every video is [label] * {n}")  # fmt: skip
+        if array.shape[0] != n:
+            raise ValueError(f"targets must have one label per video ({n}), got {array.shape[0]} (an array of shape "
+                             f"{tuple(array.shape)})")  # fmt: skip
+        # (an object array, a pandas column's .values: its entries of any kind, one by one)
+        if array.dtype.kind == "O":
+            stacked = _stacked_targets(list(array), videos)
+        else:
+            stacked = _target_array(array, "targets")
+    else:
+        if isinstance(targets, (str, bytes, Mapping)) or not isinstance(targets, Sequence):
+            hint = (": one label per video in the order of the videos, [labels[v] for v in videos]"
+                    if isinstance(targets, Mapping) else "")  # fmt: skip
+            raise TypeError(f"targets must be a sequence with one label per video, or an array or tensor whose "
+                            f"first dimension is the videos', got {type(targets).__name__}{hint}")  # fmt: skip
+        if len(targets) != n:
+            raise ValueError(f"targets must have one label per video ({n}), got {len(targets)}")
+        stacked = _stacked_targets(targets, videos)
+    # (torch's own memory, not NumPy's: a DataLoader moves it to shared memory to send it to a spawned worker)
+    kept = torch.tensor(stacked, dtype=torch.int64 if stacked.dtype == np.int64 else torch.get_default_dtype())
+    if kept.is_floating_point():
+        finite = torch.isfinite(kept.flatten(1)).all(1) if kept.dim() > 1 else torch.isfinite(kept)
+        if not bool(finite.all()):
+            i = int((~finite).nonzero()[0])
+            value = stacked[i]
+            if np.isfinite(value).all():  # (a float64 past float32's range)
+                said = (f"{'is' if value.ndim == 0 else 'holds'} {np.abs(value).max():g}, past the range of "
+                        f"{kept.dtype} (the default dtype)")  # fmt: skip
+            else:
+                said = ("is " if value.ndim == 0 else "holds ") + ("NaN" if np.isnan(value).any() else "inf")
+            raise ValueError(
+                f"targets[{i}] ({videos[i]}) {said}: a label must be finite (leave a video without a label out of "
+                "the dataset, or give it a value your loss ignores: CrossEntropyLoss's ignore_index, -100, for a class)"
+            )
+    return kept
+
+
+#: The labels' types :func:`_stacked_targets` stacks at once (no bool: its own type; no unsigned 64-bit, which NumPy
+#: turns into floats with signed ints): a list of a million of them in 0.1 s, where one by one took 2.4 s.
+_PLAIN_NUMBERS: tuple[type, ...] = (int, float, np.int64, np.int32, np.float64, np.float32)
+
+
+def _stacked_targets(targets: Sequence[object], videos: tuple[Path, ...]) -> np.ndarray:
+    """A sequence of one label per video (:func:`_kept_targets`), each checked (:func:`_one_target`), stacked:
+    ``(N, ...)`` int64, or float64 where any is a float."""
+    if all(type(t) in _PLAIN_NUMBERS for t in targets):  # (the common case: at once)
+        stacked = np.asarray(targets)
+        if stacked.dtype.kind in "if":  # (else ints past int64: told entry by entry, below)
+            return stacked.astype(np.int64 if stacked.dtype.kind == "i" else np.float64)
+    entries = [_one_target(t, f"targets[{i}] ({videos[i]})") for i, t in enumerate(targets)]
+    for i, entry in enumerate(entries):
+        if entry.shape != entries[0].shape:
+            raise ValueError(
+                f"targets[{i}] ({videos[i]}) has shape {entry.shape}, targets[0] {entries[0].shape}: every video's "
+                "label has one shape (a batch's targets stack to (B, *shape))"
+            )
+    return np.stack(entries)  # (ints with floats: float64)
+
+
 def clip_bounds(
     num_frames: int, clip_length: int | None, stride: int | None, keep_short: bool
 ) -> list[tuple[int, int]]:
@@ -1025,6 +1158,17 @@ class VideoDataset(IterableDataset):
             remembered by the dataset, for its ``DataLoader`` workers and later epochs too; all 68 points, as
             ``--detector`` takes them).
         config: :class:`DatasetConfig`.
+        targets: one label per video, in the order of ``videos`` (:data:`Targets`): a sequence of ints (class
+            indices), floats, or arrays / tensors of one shape, or one ``(N,)`` / ``(N, ...)`` array or tensor (or
+            what NumPy reads as one, ``np.asarray``: a pandas column). Each item of video ``i`` then holds
+            ``target``, ``targets[i]`` as a tensor: int64 for ints, the default float dtype
+            (``torch.get_default_dtype()`` when the dataset is made) for floats (a sequence with any float is all
+            floats); one per item, a clip's too (not per frame), as ``video``, so a batch's ``target`` is ``(B,)`` or
+            ``(B, ...)`` with the default collate and with :func:`~training_hooks.collate.collate_clips` alike. Kept
+            in :attr:`targets` (a copy). It follows its video wherever the video's items go (any ``DataLoader``
+            worker or rank, shuffled, repeated by :attr:`RankBalance.PAD`) and is not part of the cache key (the
+            cache holds tracking results: one cache serves datasets with and without labels). None (the default):
+            items without ``target``.
 
     Raises:
         TypeError, ValueError: bad arguments (checked here; also a missing or damaged face model file of
@@ -1033,11 +1177,14 @@ class VideoDataset(IterableDataset):
             :class:`~torchface.io.InputError`); problems with a video's content or its landmarks' values
             (:class:`~torchface.io.InputError`) surface when it is read, in the worker, and reach the caller through
             the ``DataLoader`` (with :attr:`DatasetConfig.keep_going`, the video is skipped instead:
-            :attr:`skipped`).
+            :attr:`skipped`). ``targets`` of another count than the videos, or of labels of different shapes, or
+            holding None, bools, strings (class names: map them to ints first) or NaN / infinite values, are refused
+            here, naming ``targets`` and the video.
 
     Example:
         >>> # data = VideoDataset(["a.avi"], [np.load("a_lm.npy")], DatasetConfig(clip_length=8))
         >>> # item = next(iter(data)); item["face"].shape -> (8, 3, 128, 128)
+        >>> # labelled = VideoDataset(["a.avi", "b.avi"], landmarks, config, targets=[3, 0])  # item["target"]: 3 or 0
     """
 
     def __init__(
@@ -1045,6 +1192,8 @@ class VideoDataset(IterableDataset):
         videos: Sequence[str | os.PathLike[str]],
         landmarks: Sequence[LandmarkSource] | np.ndarray | Tensor | Detector,
         config: DatasetConfig | None = None,
+        *,
+        targets: Targets | None = None,
     ) -> None:
         super().__init__()
         self.config = DatasetConfig() if config is None else config
@@ -1124,6 +1273,7 @@ class VideoDataset(IterableDataset):
                 f"{num_landmarks} landmarks, and a detector gives the {NUM_LANDMARKS} iBUG points: give "
                 "each video's first-frame landmarks of the model instead of a detector"
             )
+        self.targets: Tensor | None = _kept_targets(targets, self.videos)
         self._shared = _shared_state(len(self.videos)).share_memory_()
         self._sender_group: tuple[int, int] | None = None  # (rank, world_size) of the process that pickled it
         self.stats = DatasetStats()
@@ -1193,6 +1343,7 @@ class VideoDataset(IterableDataset):
         elif not state["_iterations"].is_shared():  # (by value: an independent dataset, deepcopy or plain pickle, not
             state["_iterations"][_BEGUN] = -1  # iterated yet: its first iteration repeats no order of its own)
         state.setdefault("_claims", None)  # (pickled before the claims: the flags alone, as then)
+        state.setdefault("targets", None)  # (pickled before the labels: items without a target, as then)
         state["_progress"] = None  # (this process's own)
         for name in _SHARED_STATE:  # (read back from a plain pickle, by value: an independent dataset, whose own
             if not state[name].is_shared():  # DataLoader workers must share its state)
@@ -1810,9 +1961,12 @@ class VideoDataset(IterableDataset):
             rng.shuffle(bounds)
         video = torch.tensor(index, dtype=torch.int64)
         flag = torch.tensor(cached)
+        target = None if self.targets is None else self.targets[index]  # (the video's: a repeated item's too)
         for start, stop in bounds:
             item = sequence.item(start if c.clip_length is None else slice(start, stop))
             item["video"] = video.clone()
+            if target is not None:  # (one per item, a clip's too, as video; cloned: not a view of every label)
+                item["target"] = target.clone()
             item["cached"] = flag.clone()
             yield item
 

@@ -1804,3 +1804,153 @@ def test_loader_throughput_measures_another_dataset_of_such_items() -> None:
 
     got = loader_throughput(ChainDataset([Faces(), Faces()]), 0, batch_size=2)
     assert got["faces"] == 6.0 and got["cached_fraction"] == 4 / 6
+
+
+# --------------------------------------------------------------------------------------------- labels (targets=)
+
+
+def _without_target(items: dict) -> dict:
+    return {k: {name: x for name, x in item.items() if name != "target"} for k, item in items.items()}
+
+
+def test_each_item_holds_its_videos_label_whatever_the_workers_or_the_order(clips, config):
+    """``targets=``: each item of video i holds ``target`` = targets[i] (int64, shape ()) with 0 and 2 workers and
+    shuffled, the other keys as without labels; a batch's ``target`` (default collate) is its videos' labels, (B,).
+    The labels are a permutation, so an item labelled with its video's index, or another video's label, fails."""
+    videos, lms = [c.video for c in clips], [c.landmarks for c in clips]
+    labels = [2, 0, 1]
+    plain = collect(VideoDataset(videos, lms, config), 0)  # fills the cache
+    assert "target" not in next(iter(plain.values()))  # (no targets: the items as they were)
+    data = VideoDataset(videos, lms, config, targets=labels)
+    assert data.targets.dtype == torch.int64 and data.targets.tolist() == labels
+    for workers in (0, 2):
+        items = collect(data, workers)
+        assert all(i["target"].dtype == torch.int64 and i["target"].shape == () for i in items.values())
+        assert {k: int(i["target"]) for k, i in items.items()} == {(v, t): labels[v] for v, t in plain}
+        assert_items_equal(plain, _without_target(items), skip=("cached",))
+    shuffled = VideoDataset(videos, lms, replace(config, shuffle_buffer=8, seed=5), targets=labels)
+    order = [(int(i["video"]), int(i["frame"]), int(i["target"])) for i in shuffled]
+    assert order != sorted(order) and sorted(order) == sorted((v, t, labels[v]) for v, t in plain)
+    shuffled.set_epoch(1)
+    for loader in (DataLoader(data, batch_size=4, num_workers=2), DataLoader(shuffled, batch_size=4, num_workers=2)):
+        batches = list(loader)
+        assert sum(len(b["video"]) for b in batches) == len(plain)
+        for b in batches:
+            assert b["target"].shape == b["video"].shape and torch.equal(b["target"], torch.tensor(labels)[b["video"]])
+
+
+def test_a_clips_label_is_one_per_clip_and_batches_with_collate_clips(clips, config):
+    """Clip items hold one label each, as ``video`` (not one per frame); collate_clips batches labels of a shape
+    ((2,) floats here, float64 given: the default float dtype) to (B, 2), scalar ones to (B,), with 0 and 2 workers.
+    A sequence of ints with a float among them is all floats."""
+    videos, lms = [c.video for c in clips], [c.landmarks for c in clips]
+    clip_cfg = replace(config, clip_length=4, clip_stride=3, keep_short_clips=True)  # clips (0, 4) and (3, 6)
+    labels = np.array([[0.5, -1.0], [2.0, 0.25], [1.5, 3.0]])
+    data = VideoDataset(videos, lms, clip_cfg, targets=labels)
+    items = list(data)
+    assert len(items) == 2 * len(clips)
+    expected = torch.tensor(labels, dtype=torch.get_default_dtype())
+    for item in items:
+        assert item["frame"].shape[0] in (3, 4) and item["target"].shape == (2,)
+        assert item["target"].dtype == torch.get_default_dtype()
+        assert torch.equal(item["target"], expected[int(item["video"])])
+    for workers in (0, 2):
+        batches = list(DataLoader(data, batch_size=4, num_workers=workers, collate_fn=collate_clips))
+        assert sum(len(b["video"]) for b in batches) == len(items)
+        for b in batches:
+            assert b["target"].shape == (len(b["video"]), 2) and torch.equal(b["target"], expected[b["video"]])
+    mixed = VideoDataset(videos, lms, clip_cfg, targets=[0.5, 1, 2])
+    batch = collate_clips(list(mixed))
+    assert batch["target"].dtype == torch.get_default_dtype() and batch["target"].shape == (6,)
+    assert batch["target"].tolist() == [[0.5, 1.0, 2.0][v] for v in batch["video"].tolist()]
+
+
+def test_labels_leave_the_cache_keys_as_they_were(clips, config, tmp_path):
+    """The cache holds tracking results, not labels: a dataset with labels reads every entry one without them wrote
+    and writes none of its own, and one without labels reads those a labelled one wrote; the cache folders'
+    files are the same either way."""
+    videos, lms = [c.video for c in clips[:2]], [c.landmarks for c in clips[:2]]
+
+    def files(folder: Path) -> list[str]:
+        return sorted(str(p.relative_to(folder)) for p in folder.rglob("*") if p.is_file())
+
+    plain = collect(VideoDataset(videos, lms, config), 0)  # writes the cache
+    written = files(config.cache_dir)
+    labelled = VideoDataset(videos, lms, config, targets=[1, 0])
+    items = collect(labelled, 0)
+    assert all(bool(i["cached"]) for i in items.values()) and [int(items[(v, 0)]["target"]) for v in (0, 1)] == [1, 0]
+    assert labelled.stats.cache.hits == 2 and labelled.stats.cache.misses == 0 and labelled.stats.frames_tracked == 0
+    assert_items_equal(plain, _without_target(items), skip=("cached",))
+    assert files(config.cache_dir) == written
+    other = replace(config, cache_dir=tmp_path / "labelled_first")
+    collect(VideoDataset(videos, lms, other, targets=[1, 0]), 0)  # writes the cache
+    assert files(other.cache_dir) == written
+    unlabelled = VideoDataset(videos, lms, other)
+    assert all(bool(i["cached"]) for i in collect(unlabelled, 0).values()) and unlabelled.stats.cache.hits == 2
+
+
+def test_labels_reach_a_spawned_worker_and_a_pickle_as_a_copy_of_their_own(clips, config):
+    """A spawned DataLoader worker receives the dataset pickled, labels included; a plain pickle keeps them; the
+    dataset holds a copy (the caller's tensor changed later changes no item); a dataset pickled before labels
+    existed loads with none."""
+    videos, lms = [c.video for c in clips[:2]], [c.landmarks for c in clips[:2]]
+    collect(VideoDataset(videos, lms, config), 0)  # fills the cache
+    labels = torch.tensor([[1.0, 2.0], [3.0, 4.0]])
+    data = VideoDataset(videos, lms, config, targets=labels)
+    labels[0, 0] = 9.0
+    spawned = DataLoader(data, batch_size=None, num_workers=1, multiprocessing_context="spawn")
+    got = {(int(i["video"]), int(i["frame"])): i["target"].tolist() for i in spawned}
+    assert got == {(v, t): [[1.0, 2.0], [3.0, 4.0]][v] for v in range(2) for t in range(FRAMES)}
+    assert torch.equal(pickle.loads(pickle.dumps(data)).targets, torch.tensor([[1.0, 2.0], [3.0, 4.0]]))
+    state = data.__getstate__()
+    del state["targets"]
+    old = VideoDataset.__new__(VideoDataset)
+    old.__setstate__(state)
+    assert old.targets is None and "target" not in next(iter(old))
+
+
+def test_a_folder_datasets_items_hold_their_labels_too(clips, config, tmp_path):
+    folder = tmp_path / "frames_a"
+    folder.mkdir()
+    for t, img in enumerate(read_video_uint8(clips[0].video)):
+        cv2.imwrite(str(folder / f"{t:04d}.png"), img.permute(1, 2, 0).flip(-1).numpy())
+    data = FrameFolderDataset([folder, folder], [clips[0].landmarks] * 2, config, targets=torch.tensor([5, 3]))
+    assert [(int(i["video"]), int(i["target"])) for i in data] == [(0, 5)] * FRAMES + [(1, 3)] * FRAMES
+
+
+def test_bad_labels_are_refused_when_the_dataset_is_made_naming_targets(clips, config):
+    """Each refusal names ``targets`` (and the entry and video at fault) and what to do, before any tracking."""
+    videos, lms = [c.video for c in clips], [c.landmarks for c in clips]
+    cases = [
+        ([0, 1], ValueError, r"targets must have one label per video \(3\), got 2"),
+        (np.zeros((2, 4)), ValueError, r"one label per video \(3\), got 2 \(an array of shape \(2, 4\)\)"),
+        (torch.tensor(3), TypeError, r"got a 0-d Tensor: one label for every video is \[label\] \* 3"),
+        ("abc", TypeError, "targets must be a sequence with one label per video.*got str"),
+        ({str(v): 0 for v in videos}, TypeError, r"got dict: one label per video in the order of the videos"),
+        ((k for k in range(3)), TypeError, "got generator"),
+        ([0, None, 1], TypeError, rf"targets\[1\] \({re.escape(str(videos[1]))}\) is None: every video needs a label"),
+        (["happy", "sad", "happy"], TypeError, r"targets\[0\] .* is a str \('happy'\): map class names to ints first"),
+        (np.array(["happy", "sad", "happy"]), TypeError, "targets holds strings: map class names to ints"),
+        (np.array(["happy", 1, 2], dtype=object), TypeError, r"targets\[0\] .* is a str"),
+        ([True, False, True], TypeError, r"targets\[0\] .* is a bool \(True\): give 0 / 1 as ints"),
+        (torch.tensor([True, False, True]), TypeError, "targets holds bools"),
+        ([1.0, float("nan"), 2.0], ValueError, r"targets\[1\] .* is NaN: a label must be finite"),
+        (torch.tensor([[0.0, 1.0], [0.0, float("inf")], [1.0, 0.0]]), ValueError, r"targets\[1\] .* holds inf"),
+        ([1.0, 2.0, 1e300], ValueError, r"targets\[2\] .* is 1e\+300, past the range of torch.float32"),
+        ([np.zeros(2), np.zeros(3), np.zeros(2)], ValueError, r"targets\[1\] .* has shape \(3,\), targets\[0\] \(2,\)"),
+        ([1, 2, 2**70], ValueError, r"targets\[2\] .* past int64's range"),
+        ([1j, 2, 3], TypeError, r"targets\[0\] .* must be an int, a float, or an array or tensor of them, got complex"),
+    ]
+    for targets, error, match in cases:
+        with pytest.raises(error, match=match):
+            VideoDataset(videos, lms, config, targets=targets)
+    with pytest.raises(TypeError):  # (keyword-only: the fourth positional place stays free)
+        VideoDataset(videos, lms, config, [0, 1, 2])  # type: ignore[misc]
+    assert VideoDataset(videos, lms, config, targets=None).targets is None
+    assert VideoDataset(videos, lms, config, targets=np.array([1, 0, 1], dtype=np.uint8)).targets.dtype == torch.int64
+
+    class Column:  # (what NumPy reads through __array__, as a pandas column, df["label"])
+        def __array__(self, dtype=None, copy=None):
+            return np.array([0.5, 2.0, 1.0])
+
+    assert VideoDataset(videos, lms, config, targets=Column()).targets.tolist() == [0.5, 2.0, 1.0]

@@ -363,6 +363,40 @@ def test_skipped_videos_keep_the_ranks_counts_equal(uneven, config, monkeypatch)
         assert [[len(w) for w in epoch(drop, monkeypatch, r, 2, 2)] for r in range(2)] == [[2, 0], [2, 0]]
 
 
+def test_repeated_items_hold_their_own_videos_label_and_a_skipped_videos_goes_nowhere(uneven, config, monkeypatch):
+    """``targets=`` under 2 ranks x 2 workers (RankBalance.PAD): every item holds its video's label, the items a
+    short worker repeats too (rank 1's worker 0 repeats video 1 five times, worker 1 video 3); with keep_going, the
+    items repeated in a skipped video's place (video 4, rank 0's worker 0: video 0's again) hold video 0's, and no
+    item holds the skipped one's. The labels are not the videos' indices."""
+    from training_hooks import SkippedVideoWarning
+
+    videos, landmarks = list(uneven[0]), list(uneven[1])
+    labels = [3, 1, 4, 0, 2]
+
+    def labelled(data) -> list[list[tuple[int, int, int]]]:
+        out = []
+        for rank in range(2):
+            for worker in range(2):
+                simulate(monkeypatch, rank, 2, worker, 2)
+                out.append([(int(it["video"]), int(it["frame"]), int(it["target"])) for it in data])
+        return out
+
+    def plain(runs) -> list[list[tuple[int, int]]]:
+        return [[(v, t) for v, t, _ in run] for run in runs]
+
+    runs = labelled(VideoDataset(videos, landmarks, config, targets=labels))
+    unlabelled = VideoDataset(videos, landmarks, config)
+    assert plain(runs) == [w for r in range(2) for w in epoch(unlabelled, monkeypatch, r, 2, 2)]  # (the same items)
+    assert [len(run) for run in runs] == [10, 5, 10, 5]
+    assert all(label == labels[v] for run in runs for v, _, label in run)
+    landmarks[4] = landmarks[4] + 1000.0  # (video 4 fails when tracked: its worker repeats video 0's items)
+    with pytest.warns(SkippedVideoWarning):
+        runs = labelled(VideoDataset(videos, landmarks, replace(config, keep_going=True), targets=labels))
+    assert runs[0] == [(0, t, 3) for t in range(6)] + [(0, t, 3) for t in range(4)]
+    assert all(label == labels[v] for run in runs for v, _, label in run)
+    assert 2 not in {label for run in runs for _, _, label in run}
+
+
 @pytest.mark.parametrize("mode", [RankBalance.PAD, RankBalance.DROP])
 def test_a_worker_left_nothing_to_repeat_says_so_instead_of_ending_short(uneven, config, monkeypatch, mode):
     """Worker 1 repeats from videos 2 (rank 0, 5 items) and 3 (rank 1, 3 items). Each rank holds its own dataset;
