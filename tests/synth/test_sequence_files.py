@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import warnings
 from dataclasses import fields
 from pathlib import Path
 
@@ -496,3 +497,66 @@ def test_write_sequence_removes_its_temporary_files_left_by_a_killed_run(tmp_pat
     assert not any(p.exists() for p in gone) and all(p.exists() for p in kept)
     assert (tmp_path / f"light_switch.partial-{dead}-deadbeef.avi").is_dir()
     _assert_gt_equal(load_ground_truth(tmp_path / "light_switch"), gt)
+
+
+def _spec_fields(spec):
+    return {f.name: getattr(spec, f.name) for f in fields(spec)}
+
+
+def test_sequence_spec_refuses_what_renders_nan_nothing_or_no_rotation():
+    """A NaN pose, expression, shape or light rendered frames of background (or NaN frames, for the light) with NaN
+    landmarks; a scaled or mirrored matrix a scaled or mirrored head whose ground truth was no rotation; a head
+    behind the camera nothing; tensors off the CPU failed deep in the renderer; a name with a "/" or an event past the
+    end were taken: each is refused, naming the field."""
+    from torchface.rendering.shading import LightState
+
+    from torchface.synth.sequence import SequenceSpec
+
+    good = _spec_fields(make_scenario("pose_sweep", 2, 32, 24))
+    R, t, light = good["rotation"], good["translation"], good["light"]
+    nan = float("nan")
+    for change, error, match in [
+        ({"rotation": torch.full_like(R, nan)}, ValueError, "^rotation must be finite"),
+        ({"rotation": 2.0 * R}, ValueError, r"^rotation must hold rotation matrices .*frame 0's is off by 3 with det 8"),
+        ({"rotation": -R}, ValueError, r"^rotation must hold rotation matrices .* det -1"),
+        ({"rotation": R.numpy()}, TypeError, r"^rotation must be a torch.Tensor, got ndarray \(torch.from_numpy"),
+        ({"rotation": R.to("meta")}, ValueError, r"^rotation must be on the CPU"),
+        ({"translation": t.clone().index_fill_(1, torch.tensor([2]), float("inf"))}, ValueError,
+         "^translation must be finite"),
+        ({"translation": -t}, ValueError, r"^translation\[:, 2\] must be > 0, .*millimetres.*got -4\d\d.* at frame 0"),
+        ({"anim": torch.full_like(good["anim"], nan)}, ValueError, "^anim must be finite"),
+        ({"shape_coeffs": torch.full((14,), nan)}, ValueError, "^shape_coeffs must be finite"),
+        ({"light": LightState(torch.full((2,), nan), light.directions, light.intensities)}, ValueError,
+         "^light.ambient must be finite"),
+        ({"light": LightState(light.ambient, light.directions, -light.intensities)}, ValueError, "must be >= 0"),
+        ({"light": LightState(light.ambient, 0 * light.directions, light.intensities)}, ValueError,
+         "^light.directions must not be zero"),
+        ({"name": "a/b"}, ValueError, "^name must be a file stem"),
+        ({"name": ""}, ValueError, "^name must be a file stem"),
+        ({"events": (("on", 3),)}, ValueError, r"^events must be \(label, frame\) pairs.* 0 \.\. 2"),
+    ]:
+        with pytest.raises(error, match=match):
+            SequenceSpec(**{**good, **change})
+    ok = SequenceSpec(**{**good, "events": [("on", np.int64(1))], "rotation": R.float()})  # (float32 rotations taken)
+    assert ok.events == (("on", 1),) and type(ok.events[0][1]) is int
+
+
+def test_render_warns_of_units_outside_their_range_and_of_a_face_in_no_frame(tmp_path):
+    """Animation units beyond the subject's ranges (which the tracker clamps its estimate to) and a sequence whose
+    face shows in no frame (a translation in metres) rendered without a word."""
+    from torchface.synth.sequence import SequenceSpec
+
+    good = _spec_fields(make_scenario("pose_sweep", 2, 32, 24))
+    anim = good["anim"].clone()
+    anim[:, 1] = 3.0  # Jaw drop: [0, 1.5]
+    with pytest.warns(UserWarning, match=r"'AUV11 Jaw drop' goes to 3 \.\. 3, outside its range \[0, 1.5\]") as seen:
+        render_sequence(SequenceSpec(**{**good, "anim": anim}))
+    assert len([w for w in seen if "outside its range" in str(w.message)]) == 1  # (said once, not per chunk)
+    with pytest.warns(UserWarning, match="outside its range") as seen:
+        write_sequence(SequenceSpec(**{**good, "anim": anim}), tmp_path, batch_size=1)
+    assert len([w for w in seen if "outside its range" in str(w.message)]) == 1
+    with pytest.warns(RuntimeWarning, match=r"no frame of 'pose_sweep' shows the face .*millimetres"):
+        render_sequence(SequenceSpec(**{**good, "translation": good["translation"] / 1000.0}))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        render_sequence(SequenceSpec(**good))
