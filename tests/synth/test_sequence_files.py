@@ -560,3 +560,45 @@ def test_render_warns_of_units_outside_their_range_and_of_a_face_in_no_frame(tmp
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         render_sequence(SequenceSpec(**good))
+
+
+def test_write_video_refuses_frames_it_would_write_as_something_else(tmp_path):
+    """0-255 float frames were clipped to a white video, NaN ones written black, no frame written as a video that
+    read_video could not read, a numpy array failed with "no attribute 'detach'", fps 0 or NaN and a .npy or .mpg name
+    as "no OpenCV video codec ... could open" (.mpg: written, then unreadable); nothing is written now."""
+    frames = torch.rand(2, 3, 8, 16)
+    for call, error, match in [
+        (lambda: write_video(tmp_path / "a.avi", frames * 255), ValueError,
+         r"^frames must be float in \[0, 1\], got values from .* \(0-255 values\? divide by 255\)"),
+        (lambda: write_video(tmp_path / "a.avi", frames.index_fill(0, torch.tensor([1]), float("nan"))), ValueError,
+         "^frames must be finite"),
+        (lambda: write_video(tmp_path / "a.avi", frames[:0]), ValueError, "^frames must hold at least one frame"),
+        (lambda: write_video(tmp_path / "a.avi", frames.numpy()), TypeError, r"got ndarray \(torch.from_numpy"),
+        (lambda: write_video(tmp_path / "a.avi", frames.double().to(torch.int64)), TypeError, "float in .* or uint8"),
+        (lambda: write_video(tmp_path / "a.avi", frames, fps=0), ValueError, "^fps must be a finite number > 0, got 0"),
+        (lambda: write_video(tmp_path / "a.npy", frames), ValueError, r"written as \.avi, .*got '\.npy' \(a \.npy clip: np"),
+        (lambda: write_video(tmp_path / "a.mpg", frames), ValueError, r"got '\.mpg'"),
+        (lambda: write_video(tmp_path / "a", frames), ValueError, "got 'no suffix'"),
+    ]:
+        with pytest.raises(error, match=match):
+            call()
+    assert list(tmp_path.iterdir()) == []
+    write_video(tmp_path / "b.mkv", (frames * 255).round().to(torch.uint8))  # (uint8 taken, .mkv too)
+    torch.testing.assert_close(read_video(tmp_path / "b.mkv"), (frames * 255).round() / 255, rtol=0, atol=0)
+    for bad in (0, -1):  # ("could not read any frame" of a good video)
+        with pytest.raises(ValueError, match=f"^max_frames must be an int >= 1, got {bad}$"):
+            read_video(tmp_path / "b.mkv", max_frames=bad)
+    assert read_video(tmp_path / "b.mkv", max_frames=1).shape == (1, 3, 8, 16)
+
+
+def test_ground_truth_files_name_a_missing_folder_a_foreign_npz_and_a_fractional_batch(tmp_path):
+    """save_ground_truth into a missing folder named a temporary file; load_ground_truth of another .npz raised
+    KeyError('intrinsics'); batch_size=2.5 failed in range()."""
+    spec, _, gt = _light_switch_small()
+    with pytest.raises(FileNotFoundError, match=r"no folder .*nodir to write the ground truth in$"):
+        save_ground_truth(gt, tmp_path / "nodir" / "seq")
+    np.savez(tmp_path / "other.gt.npz", a=np.zeros(2))
+    with pytest.raises(ValueError, match=r"other.gt.npz: not a ground truth of save_ground_truth, it lacks intrinsics"):
+        load_ground_truth(tmp_path / "other.mov")  # (a .mov video's stem, as .avi's)
+    with pytest.raises(TypeError, match="^batch_size must be an int >= 1, got float 2.5$"):
+        render_sequence(spec, batch_size=2.5)

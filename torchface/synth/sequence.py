@@ -37,14 +37,14 @@ import torch
 from torch import Tensor
 
 from torchface._atomic import folder_locked, remove_dead_partials, written_whole
-from torchface.geometry._checks import check_number
+from torchface.geometry._checks import check_int, check_number
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.projection import project_points
 from torchface.geometry.so3 import matrix_to_axis_angle, matrix_to_euler
 from torchface.geometry.transforms import transform_points
 from torchface.rendering.shading import LightState, render
 from torchface.synth.background import BackgroundSpec, OccluderSpec, background_frames, place_occluder
-from torchface.synth.io import VideoSink
+from torchface.synth.io import VIDEO_SUFFIXES, VideoSink
 from torchface.synth.subjects import Subject, get_subject
 from torchface.synth.textures import serial
 
@@ -489,8 +489,7 @@ def _render_chunks(
     spec: SequenceSpec, subject: Subject, shape: Tensor, batch_size: int
 ) -> Iterator[tuple[Tensor, dict[str, Tensor]]]:
     """:func:`iter_sequence` of the subject and shape coefficients :func:`_resolve` gave."""
-    if batch_size < 1:
-        raise ValueError(f"batch_size must be >= 1, got {batch_size}")
+    batch_size = check_int(batch_size, "batch_size", 1)  # (2.5 failed in range(): "'float' object cannot be ...")
     cam = spec.intrinsics
     h, w = cam.height, cam.width
     t_all = spec.num_frames
@@ -667,6 +666,8 @@ def save_ground_truth(
     stem = Path(stem)
     npz_path = stem.with_name(stem.name + ".gt.npz")
     json_path = stem.with_name(stem.name + ".gt.json")
+    if not stem.parent.is_dir():  # (said "No such file or directory: '<stem>.gt.partial-<pid>-<hex>.json'")
+        raise FileNotFoundError(f"{stem}: no folder {stem.parent} to write the ground truth in")
     arrays = {k: getattr(gt, k).numpy() for k in _TENSOR_FIELDS}
     cam = gt.intrinsics
     arrays["intrinsics"] = np.array([cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height], dtype=np.float64)
@@ -695,7 +696,7 @@ def load_ground_truth(path: str | os.PathLike[str]) -> GroundTruth:
     """
     p = Path(path)
     name = p.name
-    for suffix in (".gt.npz", ".gt.json", ".avi", ".mkv", ".mp4"):
+    for suffix in (".gt.npz", ".gt.json", *VIDEO_SUFFIXES):
         if name.endswith(suffix):
             name = name[: -len(suffix)]
             break
@@ -704,6 +705,10 @@ def load_ground_truth(path: str | os.PathLike[str]) -> GroundTruth:
         raise FileNotFoundError(f"no ground truth at {npz_path}")
     with np.load(npz_path) as z:
         a = {k: z[k] for k in z.files}
+    missing = [k for k in ("intrinsics", "strings", "fps", "au_names", "event_labels", "event_frames", *_TENSOR_FIELDS)
+               if k not in a]  # fmt: skip
+    if missing:  # (a KeyError of the first, e.g. 'intrinsics')
+        raise ValueError(f"{npz_path}: not a ground truth of save_ground_truth, it lacks {', '.join(missing)}")
     fx, fy, cx, cy, width, height = (float(x) for x in a["intrinsics"])
     strings = [str(s) for s in a["strings"]]
     tensors = {k: torch.from_numpy(a[k]) for k in _TENSOR_FIELDS}
