@@ -333,6 +333,8 @@ def test_sequence_metrics_names_its_own_arguments_and_refuses_what_it_misread() 
     with pytest.raises(ValueError, match="^lost_threshold_deg must be a finite number > 0, got -1"):
         long_run_metrics(torch.zeros(T), ok, ok, [1], lost_threshold_deg=-1)
     assert sequence_metrics(R, t, R, t, st.to(torch.int32)).success == 1.0  # (any integer dtype)
+    scan = sequence_metrics(R, t, R, t, st, anim_est=torch.zeros(T, 11), anim_gt=torch.zeros(T, 0))  # (nothing to score)
+    assert math.isnan(scan.au_rmse) and scan.au_names == ()
 
 # --- long runs: returns to frontal, recovery ---------------------------------------------------------
 

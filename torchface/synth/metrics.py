@@ -414,7 +414,7 @@ def sequence_metrics(
             if not isinstance(x, Tensor) or x.dim() != 2 or x.shape[0] != T:
                 got = tuple(x.shape) if isinstance(x, Tensor) else type(x).__name__
                 raise ValueError(f"{name} must be a ({T}, A) tensor like rotation_est's T = {T} frames, got {got}")
-        if anim_est.shape != anim_gt.shape:
+        if anim_est.shape != anim_gt.shape and anim_gt.shape[-1] > 0:  # (a scan's truth, A = 0: nothing to score)
             raise ValueError(f"anim_est and anim_gt must have the same units, got {tuple(anim_est.shape)} and "
                              f"{tuple(anim_gt.shape)}")  # fmt: skip
     lost_threshold_deg = check_number(lost_threshold_deg, "lost_threshold_deg", "(0, inf)")  # (NaN: nothing lost)
