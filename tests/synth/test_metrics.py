@@ -317,7 +317,8 @@ def test_sequence_metrics_names_its_own_arguments_and_refuses_what_it_misread() 
         ((R, t[:3], R, t, st), {}, ValueError, r"^translation_est must be \(4, 3\)"),
         ((R, t, R, t.numpy(), st), {}, TypeError, r"^translation_gt must be a torch.Tensor, got ndarray"),
         ((R, t, R, t, [0] * T), {}, TypeError, r"^status must be a \(4,\) integer tensor .*got list"),
-        ((R, t, R, t, st.bool()), {}, TypeError, r"got torch.bool \(result.success is a bool flag: give result.status\)"),
+        ((R, t, R, t, st.bool()), {}, TypeError,
+         r"got torch.bool \(result.success is a bool flag: give result.status\)"),
         ((R, t, R, t, st.float()), {}, TypeError, r"^status must hold the integer TrackStatus codes"),
         ((R, t, R, t, st), {"anim_est": torch.zeros(T, 2)}, ValueError, "^anim_est was given without anim_gt"),
         ((R, t, R, t, st), {"anim_gt": torch.zeros(T, 2)}, ValueError, "^anim_gt was given without anim_est"),
@@ -333,7 +334,7 @@ def test_sequence_metrics_names_its_own_arguments_and_refuses_what_it_misread() 
     with pytest.raises(ValueError, match="^lost_threshold_deg must be a finite number > 0, got -1"):
         long_run_metrics(torch.zeros(T), ok, ok, [1], lost_threshold_deg=-1)
     assert sequence_metrics(R, t, R, t, st.to(torch.int32)).success == 1.0  # (any integer dtype)
-    scan = sequence_metrics(R, t, R, t, st, anim_est=torch.zeros(T, 11), anim_gt=torch.zeros(T, 0))  # (nothing to score)
+    scan = sequence_metrics(R, t, R, t, st, anim_est=torch.zeros(T, 11), anim_gt=torch.zeros(T, 0))  # (no unit)
     assert math.isnan(scan.au_rmse) and scan.au_names == ()
 
 # --- long runs: returns to frontal, recovery ---------------------------------------------------------

@@ -517,7 +517,7 @@ def test_sequence_spec_refuses_what_renders_nan_nothing_or_no_rotation():
     nan = float("nan")
     for change, error, match in [
         ({"rotation": torch.full_like(R, nan)}, ValueError, "^rotation must be finite"),
-        ({"rotation": 2.0 * R}, ValueError, r"^rotation must hold rotation matrices .*frame 0's is off by 3 with det 8"),
+        ({"rotation": 2.0 * R}, ValueError, r"^rotation must hold rotation .*frame 0's is off by 3 with det 8"),
         ({"rotation": -R}, ValueError, r"^rotation must hold rotation matrices .* det -1"),
         ({"rotation": R.numpy()}, TypeError, r"^rotation must be a torch.Tensor, got ndarray \(torch.from_numpy"),
         ({"rotation": R.to("meta")}, ValueError, r"^rotation must be on the CPU"),
@@ -576,7 +576,7 @@ def test_write_video_refuses_frames_it_would_write_as_something_else(tmp_path):
         (lambda: write_video(tmp_path / "a.avi", frames.numpy()), TypeError, r"got ndarray \(torch.from_numpy"),
         (lambda: write_video(tmp_path / "a.avi", frames.double().to(torch.int64)), TypeError, "float in .* or uint8"),
         (lambda: write_video(tmp_path / "a.avi", frames, fps=0), ValueError, "^fps must be a finite number > 0, got 0"),
-        (lambda: write_video(tmp_path / "a.npy", frames), ValueError, r"written as \.avi, .*got '\.npy' \(a \.npy clip: np"),
+        (lambda: write_video(tmp_path / "a.npy", frames), ValueError, r"\.avi, .*got '\.npy' \(a \.npy clip: np"),
         (lambda: write_video(tmp_path / "a.mpg", frames), ValueError, r"got '\.mpg'"),
         (lambda: write_video(tmp_path / "a", frames), ValueError, "got 'no suffix'"),
     ]:

@@ -3,7 +3,8 @@
 The per-frame functions (:func:`relative_rotation_error_deg`, :func:`translation_errors_mm`, :func:`unit_rmse`, ...)
 take time series with the frame axis ``T`` just before the per-frame dimensions and any leading batch dimensions
 ``*`` (e.g. ``(B, T, 3, 3)`` for ``B`` runs of the same sequence); reductions are over ``T``. The summaries,
-:func:`sequence_metrics` and :func:`long_run_metrics`, score one sequence (no batch dimension): call them per stream. Rotations are head -> camera (``X_cam = R X_model + t``, millimetres; see
+:func:`sequence_metrics` and :func:`long_run_metrics`, score one sequence (no batch dimension): call them per stream.
+Rotations are head -> camera (``X_cam = R X_model + t``, millimetres; see
 :mod:`torchface.conventions`).
 
 Pose is scored *relative to frame 0*, ``R_t R_0^T`` of the estimate against the same of the ground truth,

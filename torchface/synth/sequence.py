@@ -205,11 +205,13 @@ class SequenceSpec:
         _check_light(self.light)
         events = tuple(self.events) if isinstance(self.events, (tuple, list)) else self.events
         if not isinstance(events, tuple) or not all(
-            isinstance(e, (tuple, list)) and len(e) == 2 and isinstance(e[0], str) and isinstance(e[1], numbers.Integral)
-            and not isinstance(e[1], bool) and 0 <= e[1] <= t
+            isinstance(e, (tuple, list)) and len(e) == 2 and isinstance(e[0], str)
+            and isinstance(e[1], numbers.Integral) and not isinstance(e[1], bool) and 0 <= e[1] <= t
             for e in events
         ):  # (a frame past the end, or a list, was taken as it was)
-            raise ValueError(f"events must be (label, frame) pairs, a str and an int frame in 0 .. {t}, got {self.events!r}")
+            raise ValueError(
+                f"events must be (label, frame) pairs, a str and an int frame in 0 .. {t}, got {self.events!r}"
+            )
         object.__setattr__(self, "events", tuple((str(lbl), int(f)) for lbl, f in events))
         if not isinstance(self.occluders, tuple) or not all(isinstance(o, OccluderSpec) for o in self.occluders):
             raise TypeError("occluders must be a tuple of OccluderSpec")
