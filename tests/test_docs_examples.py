@@ -179,6 +179,7 @@ def test_synthetic_sequence_block_tracks_and_scores_its_known_answer(tmp_path, m
     the unit it names is the one it opens, the turn is tracked to within a degree and the opening to a few
     percent of the unit's range, as it prints; the page's claim of pose_sweep's steps at 20 and 240 frames holds."""
     from torchface.geometry.so3 import matrix_to_euler
+    from torchface.io import open_frames
     from torchface.synth import make_scenario
 
     monkeypatch.chdir(tmp_path)
@@ -190,9 +191,14 @@ def test_synthetic_sequence_block_tracks_and_scores_its_known_answer(tmp_path, m
     assert m.rot_err_mean_deg < 1.0 and m.au_rmse < 0.03 and m.au_corr > 0.99 and m.success == 1.0
     assert capsys.readouterr().out.startswith(f"rotation error {m.rot_err_mean_deg:.2f} deg mean")
     assert list(tmp_path.iterdir()) == []
+    section = PAGES["docs/python-api.md"].split("\n## Synthetic sequences with ground truth\n", 1)[1].split("\n## ")[0]
+    save = "np.save(path, frames.permute(0, 2, 3, 1).numpy())"  # the page's .npy clip, read as torchface track reads
+    assert f"`{save}`" in section
+    exec(save, {"np": np, "path": tmp_path / "clip.npy", "frames": scope["frames"]})
+    with open_frames(tmp_path / "clip.npy") as reader:
+        assert torch.equal(torch.stack(list(reader)), scope["frames"])
     rotations = [make_scenario("pose_sweep", n, 64, 48).rotation for n in (20, 240)]
     steps = [matrix_to_euler(R).diff(dim=0).abs().max() for R in rotations]
-    section = PAGES["docs/python-api.md"].split("\n## Synthetic sequences with ground truth\n", 1)[1]
     said = re.search(r"turns up to (\d+)° between frames, .*?\((\d+)° at the 240 frames", " ".join(section.split()))
     assert said is not None and [round(float(v)) for v in steps] == [int(said.group(1)), int(said.group(2))]
 
