@@ -602,3 +602,14 @@ def test_ground_truth_files_name_a_missing_folder_a_foreign_npz_and_a_fractional
         load_ground_truth(tmp_path / "other.mov")  # (a .mov video's stem, as .avi's)
     with pytest.raises(TypeError, match="^batch_size must be an int >= 1, got float 2.5$"):
         render_sequence(spec, batch_size=2.5)
+
+
+def test_a_spec_whose_tensors_require_grad_is_written_whole(tmp_path):
+    """A rotation that required grad gave a ground truth that did too: save_ground_truth failed ("Can't call numpy()
+    on Tensor that requires grad") and write_sequence left the video without its ground truth."""
+    from dataclasses import replace
+
+    spec = make_scenario("pose_sweep", 2, 32, 24)
+    files = write_sequence(replace(spec, rotation=spec.rotation.clone().requires_grad_()), tmp_path)
+    torch.testing.assert_close(load_ground_truth(files.video).rotation, spec.rotation, rtol=0, atol=0)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["pose_sweep.avi", "pose_sweep.gt.json", "pose_sweep.gt.npz"]

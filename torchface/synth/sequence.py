@@ -670,7 +670,8 @@ def save_ground_truth(
     json_path = stem.with_name(stem.name + ".gt.json")
     if not stem.parent.is_dir():  # (said "No such file or directory: '<stem>.gt.partial-<pid>-<hex>.json'")
         raise FileNotFoundError(f"{stem}: no folder {stem.parent} to write the ground truth in")
-    arrays = {k: getattr(gt, k).numpy() for k in _TENSOR_FIELDS}
+    arrays = {k: getattr(gt, k).detach().numpy() for k in _TENSOR_FIELDS}  # (a spec's tensor that required grad:
+    # "Can't call numpy() on Tensor that requires grad", and write_sequence left its video without a ground truth)
     cam = gt.intrinsics
     arrays["intrinsics"] = np.array([cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height], dtype=np.float64)
     arrays["au_names"] = np.array(gt.au_names, dtype=np.str_)
