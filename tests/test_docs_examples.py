@@ -52,6 +52,8 @@ RUN_HERE = {
         "test_saving_a_model_block_runs_on_candide3_written_as_an_obj",
     ("docs/python-api.md", "Streams, and failed starts"):
         "test_videos_of_different_lengths_block_tracks_each_video_to_its_end",
+    ("docs/python-api.md", "Synthetic sequences with ground truth"):
+        "test_synthetic_sequence_block_tracks_and_scores_its_known_answer",
 }  # fmt: skip
 RUN_ELSEWHERE = {
     ("README.md", "Python API"):
@@ -169,6 +171,36 @@ def test_videos_of_different_lengths_block_tracks_each_video_to_its_end():
     assert [len(ypr[0]), len(ypr[1])] == [6, 3] and live == [0] and scope["result"].ypr_deg.shape == (1, 3)
     assert all(p.shape == (3,) for p in ypr[0] + ypr[1])
     torch.testing.assert_close(torch.stack(ypr[1]), torch.stack(ypr[0][:3]), atol=1e-3, rtol=0)
+
+
+def test_synthetic_sequence_block_tracks_and_scores_its_known_answer(tmp_path, monkeypatch, capsys):
+    """docs/python-api.md's synthetic-sequence block (session 65's torchface.synth audit: no page said how to render a
+    sequence of one's own, track it and score it, nor which estimate the truth's units compare with), run as written:
+    the unit it names is the one it opens, the turn is tracked to within a degree and the opening to a few
+    percent of the unit's range, as it prints; the page's claim of pose_sweep's steps at 20 and 240 frames holds."""
+    from torchface.geometry.so3 import matrix_to_euler
+    from torchface.io import open_frames
+    from torchface.synth import make_scenario
+
+    monkeypatch.chdir(tmp_path)
+    scope: dict = {}
+    exec(compile(_block("docs/python-api.md", "Synthetic sequences with ground truth"), "docs/python-api.md", "exec"),
+         scope)  # fmt: skip
+    m, gt = scope["m"], scope["gt"]
+    assert gt.au_names == scope["names"] and m.au_names == ("AUV11 Jaw drop",)
+    assert m.rot_err_mean_deg < 1.0 and m.au_rmse < 0.03 and m.au_corr > 0.99 and m.success == 1.0
+    assert capsys.readouterr().out.startswith(f"rotation error {m.rot_err_mean_deg:.2f} deg mean")
+    assert list(tmp_path.iterdir()) == []
+    section = PAGES["docs/python-api.md"].split("\n## Synthetic sequences with ground truth\n", 1)[1].split("\n## ")[0]
+    save = "np.save(path, frames.permute(0, 2, 3, 1).numpy())"  # the page's .npy clip, read as torchface track reads
+    assert f"`{save}`" in section
+    exec(save, {"np": np, "path": tmp_path / "clip.npy", "frames": scope["frames"]})
+    with open_frames(tmp_path / "clip.npy") as reader:
+        assert torch.equal(torch.stack(list(reader)), scope["frames"])
+    rotations = [make_scenario("pose_sweep", n, 64, 48).rotation for n in (20, 240)]
+    steps = [matrix_to_euler(R).diff(dim=0).abs().max() for R in rotations]
+    said = re.search(r"turns up to (\d+)° between frames, .*?\((\d+)° at the 240 frames", " ".join(section.split()))
+    assert said is not None and [round(float(v)) for v in steps] == [int(said.group(1)), int(said.group(2))]
 
 
 def test_the_result_fields_the_python_api_page_describes_are_the_codes_names_and_angles_the_code_gives():

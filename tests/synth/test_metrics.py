@@ -298,10 +298,44 @@ def test_validation_errors() -> None:
         sequence_metrics(R, torch.zeros(4, 3), R, torch.zeros(4, 3), torch.zeros(3))
     with pytest.raises(ValueError, match="anim_ranges"):
         sequence_metrics(
-            R, torch.zeros(4, 3), R, torch.zeros(4, 3), torch.zeros(4), anim_est=torch.ones(4, 1),
+            R, torch.zeros(4, 3), R, torch.zeros(4, 3), torch.zeros(4, dtype=torch.int64), anim_est=torch.ones(4, 1),
             anim_gt=torch.linspace(0, 1, 4).unsqueeze(-1), anim_names=("a",),
         )
 
+
+
+def test_sequence_metrics_names_its_own_arguments_and_refuses_what_it_misread() -> None:
+    """A shape mismatch was told of R_gt or t_est (the helpers' names); result.success given as the status (True read
+    as 1, False as 0, CONVERGED: failed frames counted usable) and float codes were taken; anim_est without anim_gt
+    scored no unit without a word; a NaN lost threshold lost no frame."""
+    T = 4
+    R = torch.eye(3, dtype=torch.float64).expand(T, 3, 3)
+    t = torch.zeros(T, 3, dtype=torch.float64)
+    st = torch.zeros(T, dtype=torch.int64)
+    for args, kwargs, error, match in [
+        ((R, t, R[:3], t, st), {}, ValueError, r"^rotation_gt must be \(4, 3, 3\) like rotation_est's T = 4"),
+        ((R, t[:3], R, t, st), {}, ValueError, r"^translation_est must be \(4, 3\)"),
+        ((R, t, R, t.numpy(), st), {}, TypeError, r"^translation_gt must be a torch.Tensor, got ndarray"),
+        ((R, t, R, t, [0] * T), {}, TypeError, r"^status must be a \(4,\) integer tensor .*got list"),
+        ((R, t, R, t, st.bool()), {}, TypeError,
+         r"got torch.bool \(result.success is a bool flag: give result.status\)"),
+        ((R, t, R, t, st.float()), {}, TypeError, r"^status must hold the integer TrackStatus codes"),
+        ((R, t, R, t, st), {"anim_est": torch.zeros(T, 2)}, ValueError, "^anim_est was given without anim_gt"),
+        ((R, t, R, t, st), {"anim_gt": torch.zeros(T, 2)}, ValueError, "^anim_gt was given without anim_est"),
+        ((R, t, R, t, st), {"anim_est": torch.zeros(T - 1, 2), "anim_gt": torch.zeros(T, 2)}, ValueError,
+         r"^anim_est must be a \(4, A\) tensor"),
+        ((R, t, R, t, st), {"anim_est": torch.zeros(T, 3), "anim_gt": torch.zeros(T, 2)}, ValueError,
+         "^anim_est and anim_gt must have the same units"),
+        ((R, t, R, t, st), {"lost_threshold_deg": float("nan")}, ValueError, "^lost_threshold_deg must be a finite"),
+    ]:
+        with pytest.raises(error, match=match):
+            sequence_metrics(*args, **kwargs)
+    ok = torch.ones(T, dtype=torch.bool)
+    with pytest.raises(ValueError, match="^lost_threshold_deg must be a finite number > 0, got -1"):
+        long_run_metrics(torch.zeros(T), ok, ok, [1], lost_threshold_deg=-1)
+    assert sequence_metrics(R, t, R, t, st.to(torch.int32)).success == 1.0  # (any integer dtype)
+    scan = sequence_metrics(R, t, R, t, st, anim_est=torch.zeros(T, 11), anim_gt=torch.zeros(T, 0))  # (no unit)
+    assert math.isnan(scan.au_rmse) and scan.au_names == ()
 
 # --- long runs: returns to frontal, recovery ---------------------------------------------------------
 

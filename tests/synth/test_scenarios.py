@@ -7,6 +7,7 @@ switch and the occluder coverage.
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 
@@ -320,3 +321,23 @@ def test_spec_validation():
         make_scenario("nope", 2, 32, 24)
     with pytest.raises(ValueError, match="size"):
         scenario_size("pose_sweep", "huge")
+
+
+def test_make_scenario_and_keyframe_path_refuse_what_int_and_nan_passed():
+    """make_scenario's int() took 2.5 frames as 2, a width of 63.9 as 63 and "20" or True as numbers; keyframe_path
+    made every frame of a NaN key's segments NaN and failed on a list with "no attribute 'to'"."""
+    for args, match in [
+        ((2.5, 64, 48), "^num_frames must be an int, got float 2.5$"),
+        (("3", 64, 48), "^num_frames must be an int, got str '3'$"),
+        ((True, 64, 48), "^num_frames must be an int, got bool True$"),
+        ((2, 63.9, 48), "^width must be an int, got float 63.9$"),
+    ]:
+        with pytest.raises(TypeError, match=match):
+            make_scenario("pose_sweep", *args)
+    assert make_scenario("pose_sweep", np.int64(2), 64, torch.tensor(48)).intrinsics.height == 48
+    with pytest.raises(ValueError, match="^keys must be finite"):
+        keyframe_path(torch.tensor([[0.0], [float("nan")]]), 3)
+    with pytest.raises(TypeError, match=r"^keys must be a \(n, D\) tensor, got list"):
+        keyframe_path([[0.0], [1.0]], 3)
+    with pytest.raises(TypeError, match="^num_frames must be an int"):
+        keyframe_path(torch.zeros(2, 1), 2.5)

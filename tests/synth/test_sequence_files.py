@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import warnings
 from dataclasses import fields
 from pathlib import Path
 
@@ -496,3 +497,119 @@ def test_write_sequence_removes_its_temporary_files_left_by_a_killed_run(tmp_pat
     assert not any(p.exists() for p in gone) and all(p.exists() for p in kept)
     assert (tmp_path / f"light_switch.partial-{dead}-deadbeef.avi").is_dir()
     _assert_gt_equal(load_ground_truth(tmp_path / "light_switch"), gt)
+
+
+def _spec_fields(spec):
+    return {f.name: getattr(spec, f.name) for f in fields(spec)}
+
+
+def test_sequence_spec_refuses_what_renders_nan_nothing_or_no_rotation():
+    """A NaN pose, expression, shape or light rendered frames of background (or NaN frames, for the light) with NaN
+    landmarks; a scaled or mirrored matrix a scaled or mirrored head whose ground truth was no rotation; a head
+    behind the camera nothing; tensors off the CPU failed deep in the renderer; a name with a "/" or an event past the
+    end were taken: each is refused, naming the field."""
+    from torchface.rendering.shading import LightState
+
+    from torchface.synth.sequence import SequenceSpec
+
+    good = _spec_fields(make_scenario("pose_sweep", 2, 32, 24))
+    R, t, light = good["rotation"], good["translation"], good["light"]
+    nan = float("nan")
+    for change, error, match in [
+        ({"rotation": torch.full_like(R, nan)}, ValueError, "^rotation must be finite"),
+        ({"rotation": 2.0 * R}, ValueError, r"^rotation must hold rotation .*frame 0's is off by 3 with det 8"),
+        ({"rotation": -R}, ValueError, r"^rotation must hold rotation matrices .* det -1"),
+        ({"rotation": R.numpy()}, TypeError, r"^rotation must be a torch.Tensor, got ndarray \(torch.from_numpy"),
+        ({"rotation": R.to("meta")}, ValueError, r"^rotation must be on the CPU"),
+        ({"translation": t.clone().index_fill_(1, torch.tensor([2]), float("inf"))}, ValueError,
+         "^translation must be finite"),
+        ({"translation": -t}, ValueError, r"^translation\[:, 2\] must be > 0, .*millimetres.*got -4\d\d.* at frame 0"),
+        ({"anim": torch.full_like(good["anim"], nan)}, ValueError, "^anim must be finite"),
+        ({"shape_coeffs": torch.full((14,), nan)}, ValueError, "^shape_coeffs must be finite"),
+        ({"light": LightState(torch.full((2,), nan), light.directions, light.intensities)}, ValueError,
+         "^light.ambient must be finite"),
+        ({"light": LightState(light.ambient, light.directions, -light.intensities)}, ValueError, "must be >= 0"),
+        ({"light": LightState(light.ambient, 0 * light.directions, light.intensities)}, ValueError,
+         "^light.directions must not be zero"),
+        ({"name": "a/b"}, ValueError, "^name must be a file stem"),
+        ({"name": ""}, ValueError, "^name must be a file stem"),
+        ({"events": (("on", 3),)}, ValueError, r"^events must be \(label, frame\) pairs.* 0 \.\. 2"),
+    ]:
+        with pytest.raises(error, match=match):
+            SequenceSpec(**{**good, **change})
+    ok = SequenceSpec(**{**good, "events": [("on", np.int64(1))], "rotation": R.float()})  # (float32 rotations taken)
+    assert ok.events == (("on", 1),) and type(ok.events[0][1]) is int
+
+
+def test_render_warns_of_units_outside_their_range_and_of_a_face_in_no_frame(tmp_path):
+    """Animation units beyond the subject's ranges (which the tracker clamps its estimate to) and a sequence whose
+    face shows in no frame (a translation in metres) rendered without a word."""
+    from torchface.synth.sequence import SequenceSpec
+
+    good = _spec_fields(make_scenario("pose_sweep", 2, 32, 24))
+    anim = good["anim"].clone()
+    anim[:, 1] = 3.0  # Jaw drop: [0, 1.5]
+    with pytest.warns(UserWarning, match=r"'AUV11 Jaw drop' goes to 3 \.\. 3, outside its range \[0, 1.5\]") as seen:
+        render_sequence(SequenceSpec(**{**good, "anim": anim}))
+    assert len([w for w in seen if "outside its range" in str(w.message)]) == 1  # (said once, not per chunk)
+    with pytest.warns(UserWarning, match="outside its range") as seen:
+        write_sequence(SequenceSpec(**{**good, "anim": anim}), tmp_path, batch_size=1)
+    assert len([w for w in seen if "outside its range" in str(w.message)]) == 1
+    with pytest.warns(RuntimeWarning, match=r"no frame of 'pose_sweep' shows the face .*millimetres"):
+        render_sequence(SequenceSpec(**{**good, "translation": good["translation"] / 1000.0}))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        render_sequence(SequenceSpec(**good))
+
+
+def test_write_video_refuses_frames_it_would_write_as_something_else(tmp_path):
+    """0-255 float frames were clipped to a white video, NaN ones written black, no frame written as a video that
+    read_video could not read, a numpy array failed with "no attribute 'detach'", fps 0 or NaN and a .npy or .mpg name
+    as "no OpenCV video codec ... could open" (.mpg: written, then unreadable); nothing is written now."""
+    frames = torch.rand(2, 3, 8, 16)
+    for call, error, match in [
+        (lambda: write_video(tmp_path / "a.avi", frames * 255), ValueError,
+         r"^frames must be float in \[0, 1\], got values from .* \(0-255 values\? divide by 255\)"),
+        (lambda: write_video(tmp_path / "a.avi", frames.index_fill(0, torch.tensor([1]), float("nan"))), ValueError,
+         "^frames must be finite"),
+        (lambda: write_video(tmp_path / "a.avi", frames[:0]), ValueError, "^frames must hold at least one frame"),
+        (lambda: write_video(tmp_path / "a.avi", frames.numpy()), TypeError, r"got ndarray \(torch.from_numpy"),
+        (lambda: write_video(tmp_path / "a.avi", frames.double().to(torch.int64)), TypeError, "float in .* or uint8"),
+        (lambda: write_video(tmp_path / "a.avi", frames, fps=0), ValueError, "^fps must be a finite number > 0, got 0"),
+        (lambda: write_video(tmp_path / "a.npy", frames), ValueError, r"\.avi, .*got '\.npy' \(a \.npy clip: np"),
+        (lambda: write_video(tmp_path / "a.mpg", frames), ValueError, r"got '\.mpg'"),
+        (lambda: write_video(tmp_path / "a", frames), ValueError, "got 'no suffix'"),
+    ]:
+        with pytest.raises(error, match=match):
+            call()
+    assert list(tmp_path.iterdir()) == []
+    write_video(tmp_path / "b.mkv", (frames * 255).round().to(torch.uint8))  # (uint8 taken, .mkv too)
+    torch.testing.assert_close(read_video(tmp_path / "b.mkv"), (frames * 255).round() / 255, rtol=0, atol=0)
+    for bad in (0, -1):  # ("could not read any frame" of a good video)
+        with pytest.raises(ValueError, match=f"^max_frames must be an int >= 1, got {bad}$"):
+            read_video(tmp_path / "b.mkv", max_frames=bad)
+    assert read_video(tmp_path / "b.mkv", max_frames=1).shape == (1, 3, 8, 16)
+
+
+def test_ground_truth_files_name_a_missing_folder_a_foreign_npz_and_a_fractional_batch(tmp_path):
+    """save_ground_truth into a missing folder named a temporary file; load_ground_truth of another .npz raised
+    KeyError('intrinsics'); batch_size=2.5 failed in range()."""
+    spec, _, gt = _light_switch_small()
+    with pytest.raises(FileNotFoundError, match=r"no folder .*nodir to write the ground truth in$"):
+        save_ground_truth(gt, tmp_path / "nodir" / "seq")
+    np.savez(tmp_path / "other.gt.npz", a=np.zeros(2))
+    with pytest.raises(ValueError, match=r"other.gt.npz: not a ground truth of save_ground_truth, it lacks intrinsics"):
+        load_ground_truth(tmp_path / "other.mov")  # (a .mov video's stem, as .avi's)
+    with pytest.raises(TypeError, match="^batch_size must be an int >= 1, got float 2.5$"):
+        render_sequence(spec, batch_size=2.5)
+
+
+def test_a_spec_whose_tensors_require_grad_is_written_whole(tmp_path):
+    """A rotation that required grad gave a ground truth that did too: save_ground_truth failed ("Can't call numpy()
+    on Tensor that requires grad") and write_sequence left the video without its ground truth."""
+    from dataclasses import replace
+
+    spec = make_scenario("pose_sweep", 2, 32, 24)
+    files = write_sequence(replace(spec, rotation=spec.rotation.clone().requires_grad_()), tmp_path)
+    torch.testing.assert_close(load_ground_truth(files.video).rotation, spec.rotation, rtol=0, atol=0)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["pose_sweep.avi", "pose_sweep.gt.json", "pose_sweep.gt.npz"]

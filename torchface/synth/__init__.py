@@ -4,6 +4,13 @@ Subjects (:mod:`~torchface.synth.subjects`): CANDIDE-3 textured from a frontal p
 James face scan. Scenarios (:mod:`~torchface.synth.scenarios`) are deterministic functions of
 ``(num_frames, width, height)``; :func:`render_sequence` renders one in memory and
 :func:`write_sequence` writes a lossless video plus ``<name>.gt.npz`` / ``<name>.gt.json``.
+
+A sequence of one's own is a :class:`SequenceSpec` (pose, animation units, light per frame; the helpers
+:func:`~torchface.synth.scenarios.keyframe_path`, :func:`~torchface.synth.scenarios.default_light` and
+:data:`~torchface.synth.scenarios.FACE_DISTANCE_MM` are in :mod:`~torchface.synth.scenarios`). A tracked sequence is
+scored against its :class:`GroundTruth` by :mod:`torchface.synth.metrics`
+(:func:`~torchface.synth.metrics.sequence_metrics`); docs/python-api.md, "Synthetic sequences with ground truth",
+renders, tracks and scores one.
 """
 
 from __future__ import annotations

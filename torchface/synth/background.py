@@ -37,9 +37,21 @@ class BackgroundSpec:
     pan_px_per_frame: tuple[float, float] = (0.0, 0.0)
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "seed", check_int(self.seed, "seed"))
+        object.__setattr__(self, "seed", _check_seed(self.seed))
         object.__setattr__(self, "margin", check_number(self.margin, "margin", "[0, 4]"))
         _set_pair(self, "pan_px_per_frame", "(-inf, inf)")  # (NaN or inf: NaN frames)
+
+
+#: Texture seeds lie in ``[-SEED_LIMIT, SEED_LIMIT]``: torch's generator takes 64-bit seeds, and the textures add
+#: small offsets to them (2**70 failed when rendering, "Overflow when unpacking long long").
+SEED_LIMIT: int = 2**62
+
+
+def _check_seed(value: object) -> int:
+    seed = check_int(value, "seed")
+    if abs(seed) > SEED_LIMIT:
+        raise ValueError(f"seed must be an int in [-2**62, 2**62], got {seed}")
+    return seed
 
 
 def _set_pair(spec: object, name: str, interval: str) -> None:
@@ -124,8 +136,9 @@ class OccluderSpec:
     seed: int = 5
 
     def __post_init__(self) -> None:
-        for name in ("first_frame", "last_frame", "seed"):
+        for name in ("first_frame", "last_frame"):
             object.__setattr__(self, name, check_int(getattr(self, name), name))
+        object.__setattr__(self, "seed", _check_seed(self.seed))
         if not 0 <= self.first_frame < self.last_frame:
             raise ValueError(f"need 0 <= first_frame < last_frame, got {self.first_frame}, {self.last_frame}")
         # (an aspect was not checked: 0 or inf gave NaN masks)

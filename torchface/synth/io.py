@@ -20,10 +20,13 @@ import torch
 from torch import Tensor
 
 from torchface._atomic import partial_path
+from torchface._frame_values import check_frame_values
+from torchface.geometry._checks import check_int, check_number
 from torchface.io.video import open_capture, opencv_path
 
 __all__ = [
     "LOSSLESS_CODECS",
+    "VIDEO_SUFFIXES",
     "VideoSink",
     "write_video",
     "read_video",
@@ -34,6 +37,25 @@ __all__ = [
 
 #: FourCC codes tried in order (all lossless); ``MJPG`` (lossy) is the last resort.
 LOSSLESS_CODECS: tuple[str, ...] = ("FFV1", "png ", "HFYU", "MJPG")
+
+#: Suffixes :class:`VideoSink` writes: FFV1 in these reads back bit-exactly (others were written unreadable, ``.mpg``,
+#: or failed as "no OpenCV video codec ... could open", ``.npy``).
+VIDEO_SUFFIXES: tuple[str, ...] = (".avi", ".mkv", ".mov", ".mp4")
+
+
+def _check_frames(frames: object) -> Tensor:
+    """Refuse frames that would be written as something else: not a tensor, NaN or infinite values (written as 0),
+    values outside [0, 1] beyond a resampling's overshoot (0-255 floats were clipped to a white video)."""
+    if not isinstance(frames, Tensor):
+        hint = " (torch.from_numpy(frames): (T, 3, H, W) RGB)" if isinstance(frames, np.ndarray) else ""
+        raise TypeError(f"frames must be a torch.Tensor, got {type(frames).__name__}{hint}")
+    if frames.dtype != torch.uint8:
+        if not frames.is_floating_point():
+            raise TypeError(f"frames must be float in [0, 1] or uint8, got {frames.dtype}")
+        if not bool(torch.isfinite(frames).all()):
+            raise ValueError("frames must be finite, got NaN or infinite values")
+        check_frame_values(frames)
+    return frames
 
 
 def frames_to_uint8(frames: Tensor) -> np.ndarray:
@@ -62,7 +84,8 @@ class VideoSink:
         FileNotFoundError: ``path``'s folder does not exist.
         OSError: the file cannot be written there (a read-only folder, a full disk), naming it.
         IsADirectoryError: ``path`` is a folder.
-        ValueError: an odd or too small size, or a name that is not valid UTF-8 (OpenCV cannot write it).
+        ValueError: an odd or too small size, a suffix not in :data:`VIDEO_SUFFIXES`, ``fps`` not a number > 0, or a
+            name that is not valid UTF-8 (OpenCV cannot write it).
         RuntimeError: no codec of :data:`LOSSLESS_CODECS` opens the file.
 
     Example:
@@ -72,6 +95,7 @@ class VideoSink:
     def __init__(self, path: str | os.PathLike[str], width: int, height: int, fps: float = 25.0) -> None:
         self.path = Path(path)
         self.width, self.height = int(width), int(height)
+        fps = check_number(fps, "fps", "(0, inf)")  # (0 or NaN: "no OpenCV video codec ... could open", and noise)
         if self.width < 2 or self.height < 2 or self.width % 2 or self.height % 2:
             # FFV1 and the other 4:2:0 codecs write odd sizes cropped to even ones without a word, so the file
             # would no longer match the ground truth's intrinsics and landmarks
@@ -80,6 +104,12 @@ class VideoSink:
             raise FileNotFoundError(f"{self.path}: no folder {self.path.parent} to write the video in")
         if self.path.is_dir():
             raise IsADirectoryError(f"{self.path}: a folder, not a video file name (e.g. {self.path / 'clip.avi'})")
+        if self.path.suffix.lower() not in VIDEO_SUFFIXES:
+            npy = " (a .npy clip: np.save(path, frames.permute(0, 2, 3, 1).numpy()), (T, H, W, 3) RGB)"
+            raise ValueError(
+                f"{self.path}: a lossless video is written as {', '.join(VIDEO_SUFFIXES)} (.avi recommended), got "
+                f"{self.path.suffix or 'no suffix'!r}" + (npy if self.path.suffix.lower() == ".npy" else "")
+            )
         self._tmp = partial_path(self.path)
         tmp = opencv_path(self._tmp, ValueError)  # (a name that is not UTF-8 crashed OpenCV's writer: a segfault)
         self._writer: cv2.VideoWriter | None = None
@@ -98,9 +128,11 @@ class VideoSink:
             raise RuntimeError(f"no OpenCV video codec among {LOSSLESS_CODECS} could open {self._tmp}")
 
     def write(self, frames: Tensor) -> None:
-        """Append ``(T, 3, H, W)`` float frames in ``[0, 1]`` (or uint8)."""
+        """Append ``(T, 3, H, W)`` float frames in ``[0, 1]`` (or uint8); NaN, infinite or 0-255 float values are
+        refused (they were written as black or white pixels)."""
         if self._writer is None:
             raise RuntimeError("video sink is closed")
+        frames = _check_frames(frames)
         if frames.ndim != 4 or tuple(frames.shape[1:]) != (3, self.height, self.width):
             raise ValueError(f"frames must be (T, 3, {self.height}, {self.width}), got {tuple(frames.shape)}")
         for img in frames_to_uint8(frames):
@@ -133,9 +165,17 @@ class VideoSink:
 
 
 def write_video(path: str | os.PathLike[str], frames: Tensor, fps: float = 25.0) -> str:
-    """Write ``(T, 3, H, W)`` frames in ``[0, 1]`` to ``path``; returns the FourCC code used."""
+    """Write ``(T, 3, H, W)`` RGB frames, float in ``[0, 1]`` or uint8, to ``path`` (a suffix of
+    :data:`VIDEO_SUFFIXES`, ``.avi`` recommended); returns the FourCC code used.
+
+    Example:
+        >>> # write_video("clip.avi", frames); read_video("clip.avi")  # the same frames, 8-bit quantised
+    """
+    frames = _check_frames(frames)
     if frames.ndim != 4 or frames.shape[1] != 3:
         raise ValueError(f"frames must be (T, 3, H, W), got shape {tuple(frames.shape)}")
+    if frames.shape[0] == 0:  # (a video of no frame, which read_video cannot read)
+        raise ValueError("frames must hold at least one frame, got T = 0")
     with VideoSink(path, frames.shape[3], frames.shape[2], fps) as sink:
         sink.write(frames)
         return sink.codec
@@ -159,7 +199,10 @@ def _open(path: str | os.PathLike[str]) -> cv2.VideoCapture:
 
 
 def read_video_uint8(path: str | os.PathLike[str], max_frames: int | None = None) -> Tensor:
-    """Read a video into ``(T, 3, H, W)`` uint8 RGB (a quarter of the memory of :func:`read_video`)."""
+    """Read a video into ``(T, 3, H, W)`` uint8 RGB (a quarter of the memory of :func:`read_video`); at most
+    ``max_frames`` (an int >= 1, None: all)."""
+    if max_frames is not None:  # (0 or -1 said "could not read any frame" of a good video)
+        max_frames = check_int(max_frames, "max_frames", 1)
     cap = _open(path)
     frames: list[np.ndarray] = []
     try:
@@ -193,5 +236,5 @@ def iter_video_uint8(path: str | os.PathLike[str]) -> Iterator[Tensor]:
 
 
 def read_video(path: str | os.PathLike[str], max_frames: int | None = None) -> Tensor:
-    """Read a video into ``(T, 3, H, W)`` float32 RGB in ``[0, 1]``."""
+    """Read a video into ``(T, 3, H, W)`` float32 RGB in ``[0, 1]``; at most ``max_frames`` (None: all)."""
     return read_video_uint8(path, max_frames).to(torch.float32) / 255.0

@@ -1,8 +1,10 @@
 """Accuracy of a tracked sequence against synthetic ground truth (pose, expression, robustness).
 
-All functions take time series with the frame axis ``T`` just before the per-frame dimensions and any
-leading batch dimensions ``*`` (e.g. ``(B, T, 3, 3)`` for ``B`` runs of the same sequence); reductions are
-over ``T``. Rotations are head -> camera (``X_cam = R X_model + t``, millimetres; see
+The per-frame functions (:func:`relative_rotation_error_deg`, :func:`translation_errors_mm`, :func:`unit_rmse`, ...)
+take time series with the frame axis ``T`` just before the per-frame dimensions and any leading batch dimensions
+``*`` (e.g. ``(B, T, 3, 3)`` for ``B`` runs of the same sequence); reductions are over ``T``. The summaries,
+:func:`sequence_metrics` and :func:`long_run_metrics`, score one sequence (no batch dimension): call them per stream.
+Rotations are head -> camera (``X_cam = R X_model + t``, millimetres; see
 :mod:`torchface.conventions`).
 
 Pose is scored *relative to frame 0*, ``R_t R_0^T`` of the estimate against the same of the ground truth,
@@ -18,6 +20,7 @@ from dataclasses import asdict, dataclass
 import torch
 from torch import Tensor
 
+from torchface.geometry._checks import check_number
 from torchface.geometry.so3 import geodesic_angle_deg, matrix_to_axis_angle, matrix_to_euler
 from torchface.tracker.step import TrackStatus, usable_status
 
@@ -384,8 +387,38 @@ def sequence_metrics(
     if rotation_est.dim() != 3 or rotation_est.shape[0] < 2:
         raise ValueError(f"rotation_est must be (T, 3, 3) with T >= 2, got {tuple(rotation_est.shape)}")
     T = rotation_est.shape[0]
-    if not isinstance(status, Tensor) or tuple(status.shape) != (T,):
-        raise ValueError(f"status must be ({T},), got {tuple(getattr(status, 'shape', ()))}")
+    _check_rotations(rotation_gt, "rotation_gt")
+    for x, name, shape in (
+        (rotation_gt, "rotation_gt", (T, 3, 3)),
+        (translation_est, "translation_est", (T, 3)),
+        (translation_gt, "translation_gt", (T, 3)),
+    ):  # (named as the helpers name theirs, R_gt or t_est, where the shapes differed)
+        if not isinstance(x, Tensor):
+            raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
+        if tuple(x.shape) != shape:
+            raise ValueError(f"{name} must be {shape} like rotation_est's T = {T} frames, got {tuple(x.shape)}")
+    if not isinstance(status, Tensor):
+        raise TypeError(f"status must be a ({T},) integer tensor of TrackStatus codes, got {type(status).__name__}")
+    if tuple(status.shape) != (T,):
+        raise ValueError(f"status must be ({T},), got {tuple(status.shape)}")
+    if status.is_floating_point() or status.is_complex() or status.dtype == torch.bool:
+        # (result.success, True where usable, was read as status 1 and False as 0, CONVERGED: every frame usable)
+        raise TypeError(
+            f"status must hold the integer TrackStatus codes (TrackResult.status), got {status.dtype}"
+            + (" (result.success is a bool flag: give result.status)" if status.dtype == torch.bool else "")
+        )
+    if (anim_est is None) != (anim_gt is None):  # (one alone scored no unit without a word)
+        given, missing = ("anim_est", "anim_gt") if anim_gt is None else ("anim_gt", "anim_est")
+        raise ValueError(f"{given} was given without {missing}: give both to score the animation units, or neither")
+    if anim_est is not None and anim_gt is not None:
+        for x, name in ((anim_est, "anim_est"), (anim_gt, "anim_gt")):
+            if not isinstance(x, Tensor) or x.dim() != 2 or x.shape[0] != T:
+                got = tuple(x.shape) if isinstance(x, Tensor) else type(x).__name__
+                raise ValueError(f"{name} must be a ({T}, A) tensor like rotation_est's T = {T} frames, got {got}")
+        if anim_est.shape != anim_gt.shape and anim_gt.shape[-1] > 0:  # (a scan's truth, A = 0: nothing to score)
+            raise ValueError(f"anim_est and anim_gt must have the same units, got {tuple(anim_est.shape)} and "
+                             f"{tuple(anim_gt.shape)}")  # fmt: skip
+    lost_threshold_deg = check_number(lost_threshold_deg, "lost_threshold_deg", "(0, inf)")  # (NaN: nothing lost)
     rot = relative_rotation_error_deg(rotation_est, rotation_gt)[1:]
     ypr = relative_ypr_error_deg(rotation_est, rotation_gt)[1:].abs().mean(0)
     t_abs, t_rel = translation_errors_mm(translation_est, translation_gt)
@@ -584,6 +617,7 @@ def long_run_metrics(
     occluded = torch.zeros(T, dtype=torch.bool) if occluded is None else _check_flags(occluded, "occluded", T)
     if hold < 1:
         raise ValueError(f"hold must be >= 1, got {hold}")
+    lost_threshold_deg = check_number(lost_threshold_deg, "lost_threshold_deg", "(0, inf)")  # (NaN: every frame good)
     frames = tuple(int(f) for f in return_frames)
     if any(not 1 <= f < T for f in frames):
         raise ValueError(f"return_frames must lie in 1 .. {T - 1}, got {frames}")

@@ -28,6 +28,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from torchface.geometry._checks import check_int
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.so3 import euler_to_matrix
 from torchface.rendering.shading import LightState
@@ -102,9 +103,14 @@ def keyframe_path(keys: Tensor, num_frames: int) -> Tensor:
         >>> keyframe_path(torch.tensor([[0.0], [10.0]]), 3).flatten()
         tensor([ 0.,  5., 10.], dtype=torch.float64)
     """
+    if not isinstance(keys, Tensor):  # (a list failed on "no attribute 'to'")
+        raise TypeError(f"keys must be a (n, D) tensor, got {type(keys).__name__} (torch.tensor(keys))")
     keys = keys.to(torch.float64)
     if keys.ndim != 2 or keys.shape[0] < 1:
         raise ValueError(f"keys must be (n, D) with n >= 1, got {tuple(keys.shape)}")
+    if not bool(torch.isfinite(keys).all()):  # (a NaN key made every frame of its segments NaN)
+        raise ValueError("keys must be finite, got NaN or infinite values")
+    num_frames = check_int(num_frames, "num_frames")
     if num_frames < 1:
         raise ValueError(f"num_frames must be >= 1, got {num_frames}")
     if keys.shape[0] == 1 or num_frames == 1:
@@ -569,4 +575,6 @@ def make_scenario(name: str, num_frames: int, width: int, height: int) -> Sequen
     """
     if name not in ALL_SCENARIOS:
         raise ValueError(f"scenario must be one of {tuple(ALL_SCENARIOS)}, got {name!r}")
-    return ALL_SCENARIOS[name](int(num_frames), int(width), int(height))
+    # (int() took 2.5 frames as 2, a width of 639.9 as 639, "20" and True without a word)
+    sizes = (check_int(v, n) for v, n in ((num_frames, "num_frames"), (width, "width"), (height, "height")))
+    return ALL_SCENARIOS[name](*sizes)

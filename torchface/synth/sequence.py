@@ -25,7 +25,9 @@ before ``(1 - 1e-2)`` of its depth (the tolerance of
 from __future__ import annotations
 
 import json
+import numbers
 import os
+import warnings
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -35,14 +37,14 @@ import torch
 from torch import Tensor
 
 from torchface._atomic import folder_locked, remove_dead_partials, written_whole
-from torchface.geometry._checks import check_number
+from torchface.geometry._checks import check_int, check_number
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.projection import project_points
 from torchface.geometry.so3 import matrix_to_axis_angle, matrix_to_euler
 from torchface.geometry.transforms import transform_points
 from torchface.rendering.shading import LightState, render
 from torchface.synth.background import BackgroundSpec, OccluderSpec, background_frames, place_occluder
-from torchface.synth.io import VideoSink
+from torchface.synth.io import VIDEO_SUFFIXES, VideoSink
 from torchface.synth.subjects import Subject, get_subject
 from torchface.synth.textures import serial
 
@@ -60,6 +62,59 @@ __all__ = [
 
 #: Number of landmarks in the ground truth (iBUG-68).
 NUM_LANDMARKS: int = 68
+
+
+#: How far ``R^T R`` may be from the identity (largest entry) for :class:`SequenceSpec` to take ``R`` as a rotation:
+#: float32 rotations are within 1e-6; a scaled matrix or one that is not a rotation is far outside.
+ROTATION_TOLERANCE: float = 1e-3
+
+
+def _check_spec_tensor(x: object, name: str) -> None:
+    """Refuse what :class:`SequenceSpec` cannot render from its field ``name`` (``shape_coeffs`` may be None): not a
+    tensor, a complex one, one off the CPU (the renderer's), or NaN or infinite values (they rendered a frame of
+    background and NaN landmarks without a word)."""
+    if x is None and name == "shape_coeffs":
+        return
+    if not isinstance(x, Tensor):
+        hint = f" (torch.from_numpy({name}))" if isinstance(x, np.ndarray) else ""
+        raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}{hint}")
+    if x.is_complex():
+        raise TypeError(f"{name} must be a real tensor, got {x.dtype}")
+    if x.device.type != "cpu":
+        raise ValueError(f"{name} must be on the CPU, where the sequence is rendered, got {x.device} ({name}.cpu())")
+    if x.is_floating_point() and not bool(torch.isfinite(x).all()):
+        raise ValueError(f"{name} must be finite, got NaN or infinite values")
+
+
+def _check_rotations(R: Tensor) -> None:
+    """Refuse ``(T, 3, 3)`` matrices that are not rotations (a scale, a shear, a reflection: they rendered a scaled or
+    mirrored head, and its ground truth ``ypr_deg`` and ``axis_angle`` of no rotation at all)."""
+    R64 = R.detach().to(torch.float64)
+    off = (R64.transpose(-1, -2) @ R64 - torch.eye(3, dtype=torch.float64)).abs().amax(dim=(-2, -1))
+    det = torch.linalg.det(R64)
+    bad = (off > ROTATION_TOLERANCE) | (det <= 0)
+    if bool(bad.any()):
+        k = int(bad.nonzero()[0])
+        raise ValueError(
+            f"rotation must hold rotation matrices (R^T R = I, det R = +1), frame {k}'s is off by {float(off[k]):.3g} "
+            f"with det {float(det[k]):.4g}; make them with torchface.geometry.so3.euler_to_matrix(ypr_deg) or "
+            "axis_angle_to_matrix"
+        )
+
+
+def _check_light(light: LightState) -> None:
+    """Refuse a light that renders NaN frames (a NaN ambient or intensity did) or a light of no direction or a
+    negative strength."""
+    for name in ("ambient", "directions", "intensities"):
+        value = getattr(light, name)
+        if value.device.type != "cpu":
+            raise ValueError(f"light.{name} must be on the CPU, where the sequence is rendered, got {value.device}")
+        if not bool(torch.isfinite(value).all()):
+            raise ValueError(f"light.{name} must be finite, got NaN or infinite values")
+    if bool((light.ambient < 0).any()) or bool((light.intensities < 0).any()):
+        raise ValueError("light.ambient and light.intensities must be >= 0")
+    if bool(((light.directions.norm(dim=-1) == 0) & (light.intensities > 0)).any()):
+        raise ValueError("light.directions must not be zero where a light is on (intensity > 0)")
 
 
 @dataclass(frozen=True, eq=False)
@@ -82,6 +137,23 @@ class SequenceSpec:
         events: ``(label, frame)`` pairs worth knowing (e.g. when a light switches on).
         description: one line for humans.
         occluders: further occluding objects; the frame ranges of ``occluder`` and these must not overlap.
+
+    Checked when made: the tensors are finite and on the CPU (where the sequence is rendered), ``rotation`` holds
+    rotation matrices (within :data:`ROTATION_TOLERANCE`; make them with
+    :func:`~torchface.geometry.so3.euler_to_matrix`), the head is in front of the camera (``translation[:, 2] > 0``),
+    the light's ambient and intensities are ``>= 0``, ``name`` is a file stem and each event's frame lies in
+    ``0 .. T``. Rendering warns where ``anim`` leaves the subject's ``animation_ranges`` (the tracker clamps its
+    estimate to them) and where no frame shows the face.
+
+    Example:
+        >>> from torchface.geometry.so3 import euler_to_matrix
+        >>> from torchface.synth.scenarios import default_light
+        >>> T, ypr = 3, torch.tensor([[0.0, 0, 0], [10.0, 0, 0], [20.0, 0, 0]], dtype=torch.float64)
+        >>> spec = SequenceSpec("turn", "candide3", Intrinsics.default(80, 60), euler_to_matrix(ypr),
+        ...                     torch.tensor([[0.0, 0.0, 450.0]] * T), torch.zeros(T, 11), default_light(T))
+        >>> frames, gt = render_sequence(spec)
+        >>> frames.shape, gt.ypr_deg[-1, 0].item()
+        (torch.Size([3, 3, 60, 80]), 20.0)
     """
 
     name: str
@@ -101,21 +173,46 @@ class SequenceSpec:
     occluders: tuple[OccluderSpec, ...] = ()
 
     def __post_init__(self) -> None:
+        if not isinstance(self.name, str) or not self.name or self.name in (".", "..") or any(
+            c in self.name for c in "/\\\0"
+        ):  # (a name with a "/" wrote into a subfolder, or failed as "no folder"; "" wrote a hidden ".avi")
+            raise ValueError(f"name must be a file stem, without a folder or a '/', got {self.name!r}")
         if not isinstance(self.intrinsics, Intrinsics):
             raise TypeError(f"intrinsics must be an Intrinsics, got {type(self.intrinsics).__name__}")
-        if not isinstance(self.rotation, Tensor) or self.rotation.ndim != 3 or self.rotation.shape[1:] != (3, 3):
+        for name in ("rotation", "translation", "anim", "shape_coeffs"):
+            _check_spec_tensor(getattr(self, name), name)
+        if self.rotation.ndim != 3 or self.rotation.shape[1:] != (3, 3):
             raise ValueError(f"rotation must be a (T, 3, 3) tensor, got {getattr(self.rotation, 'shape', self.rotation)}")
         t = self.rotation.shape[0]
         if t < 1:
             raise ValueError("a sequence needs at least one frame")
-        if not isinstance(self.translation, Tensor) or tuple(self.translation.shape) != (t, 3):
+        if tuple(self.translation.shape) != (t, 3):
             raise ValueError(f"translation must be ({t}, 3), got {getattr(self.translation, 'shape', self.translation)}")
-        if not isinstance(self.anim, Tensor) or self.anim.ndim != 2 or self.anim.shape[0] != t:
+        if self.anim.ndim != 2 or self.anim.shape[0] != t:
             raise ValueError(f"anim must be ({t}, A), got {getattr(self.anim, 'shape', self.anim)}")
         if not isinstance(self.light, LightState) or self.light.batch_size != t:
             raise ValueError(f"light must be a LightState with batch {t}")
-        if self.shape_coeffs is not None and (not isinstance(self.shape_coeffs, Tensor) or self.shape_coeffs.ndim != 1):
+        if self.shape_coeffs is not None and self.shape_coeffs.ndim != 1:
             raise ValueError("shape_coeffs must be a (S,) tensor or None")
+        _check_rotations(self.rotation)
+        z = self.translation[:, 2].detach().to(torch.float64)
+        if not bool((z > 0).all()):  # (the face rendered nowhere, its landmarks behind the camera)
+            k = int((z <= 0).nonzero()[0])
+            raise ValueError(
+                f"translation[:, 2] must be > 0, the head in front of the camera (millimetres, X_cam = R X_model + t; "
+                f"the scenarios' FACE_DISTANCE_MM is 450), got {float(z[k]):.6g} at frame {k}"
+            )
+        _check_light(self.light)
+        events = tuple(self.events) if isinstance(self.events, (tuple, list)) else self.events
+        if not isinstance(events, tuple) or not all(
+            isinstance(e, (tuple, list)) and len(e) == 2 and isinstance(e[0], str)
+            and isinstance(e[1], numbers.Integral) and not isinstance(e[1], bool) and 0 <= e[1] <= t
+            for e in events
+        ):  # (a frame past the end, or a list, was taken as it was)
+            raise ValueError(
+                f"events must be (label, frame) pairs, a str and an int frame in 0 .. {t}, got {self.events!r}"
+            )
+        object.__setattr__(self, "events", tuple((str(lbl), int(f)) for lbl, f in events))
         if not isinstance(self.occluders, tuple) or not all(isinstance(o, OccluderSpec) for o in self.occluders):
             raise TypeError("occluders must be a tuple of OccluderSpec")
         spans = sorted((o.first_frame, o.last_frame) for o in self.all_occluders)
@@ -357,6 +454,26 @@ def _resolve(spec: SequenceSpec) -> tuple[Subject, Tensor]:
     return subject, shape
 
 
+def _warn_out_of_range(spec: SequenceSpec, subject: Subject) -> None:
+    """Warn where ``spec.anim`` leaves the subject's ``animation_ranges``: rendered as asked, but the tracker clamps
+    its estimate to them, so that no estimate can match it."""
+    if not subject.num_animation:
+        return
+    anim = spec.anim.detach().to(torch.float64)
+    ranges = subject.animation_ranges.to(torch.float64)
+    outside = (anim < ranges[:, 0]) | (anim > ranges[:, 1])
+    if bool(outside.any()):
+        j = int(outside.any(0).nonzero()[0])
+        lo, hi = (float(v) for v in ranges[j])
+        warnings.warn(
+            f"anim's {subject.animation_names[j]!r} goes to {float(anim[:, j].min()):.4g} .. "
+            f"{float(anim[:, j].max()):.4g}, outside its range [{lo:.4g}, {hi:.4g}] (the subject's animation_ranges), "
+            "to which the tracker clamps its estimate: its error cannot reach 0 there",
+            UserWarning,
+            stacklevel=3,
+        )
+
+
 def iter_sequence(spec: SequenceSpec, batch_size: int = 8) -> Iterator[tuple[Tensor, dict[str, Tensor]]]:
     """Render ``spec`` in chunks of at most ``batch_size`` frames.
 
@@ -365,9 +482,16 @@ def iter_sequence(spec: SequenceSpec, batch_size: int = 8) -> Iterator[tuple[Ten
         (``landmarks_3d``, ``landmarks_px``, ``landmarks_visible``, ``occluded_fraction``,
         ``face_pixels``, ``occluder_on``).
     """
-    if batch_size < 1:
-        raise ValueError(f"batch_size must be >= 1, got {batch_size}")
     subject, shape = _resolve(spec)
+    _warn_out_of_range(spec, subject)
+    yield from _render_chunks(spec, subject, shape, batch_size)
+
+
+def _render_chunks(
+    spec: SequenceSpec, subject: Subject, shape: Tensor, batch_size: int
+) -> Iterator[tuple[Tensor, dict[str, Tensor]]]:
+    """:func:`iter_sequence` of the subject and shape coefficients :func:`_resolve` gave."""
+    batch_size = check_int(batch_size, "batch_size", 1)  # (2.5 failed in range(): "'float' object cannot be ...")
     cam = spec.intrinsics
     h, w = cam.height, cam.width
     t_all = spec.num_frames
@@ -444,6 +568,13 @@ def _ground_truth(spec: SequenceSpec, subject: Subject, shape: Tensor, rows: _Ro
     if rows.filled != spec.num_frames:
         raise RuntimeError(f"rendered {rows.filled} of {spec.num_frames} frames")
     cat = rows.data
+    if not bool((cat["face_pixels"] > 0).any()):
+        warnings.warn(
+            f"no frame of {spec.name!r} shows the face (face_pixels is 0 in all {spec.num_frames}): is translation in "
+            "millimetres, the head in front of the camera and inside its view?",
+            RuntimeWarning,
+            stacklevel=3,
+        )
     R = spec.rotation.to(torch.float64)
     return GroundTruth(
         name=spec.name,
@@ -489,8 +620,9 @@ def render_sequence(spec: SequenceSpec, batch_size: int = 8) -> tuple[Tensor, Gr
         (torch.Size([4, 3, 60, 80]), torch.Size([4, 68, 2]))
     """
     subject, shape = _resolve(spec)
+    _warn_out_of_range(spec, subject)
     frames, rows = _Rows(spec.num_frames), _Rows(spec.num_frames)
-    for img, gt in iter_sequence(spec, batch_size):
+    for img, gt in _render_chunks(spec, subject, shape, batch_size):
         frames.add({"frames": img})
         rows.add(gt)
     return frames.data["frames"], _ground_truth(spec, subject, shape, rows)
@@ -536,7 +668,10 @@ def save_ground_truth(
     stem = Path(stem)
     npz_path = stem.with_name(stem.name + ".gt.npz")
     json_path = stem.with_name(stem.name + ".gt.json")
-    arrays = {k: getattr(gt, k).numpy() for k in _TENSOR_FIELDS}
+    if not stem.parent.is_dir():  # (said "No such file or directory: '<stem>.gt.partial-<pid>-<hex>.json'")
+        raise FileNotFoundError(f"{stem}: no folder {stem.parent} to write the ground truth in")
+    arrays = {k: getattr(gt, k).detach().numpy() for k in _TENSOR_FIELDS}  # (a spec's tensor that required grad:
+    # "Can't call numpy() on Tensor that requires grad", and write_sequence left its video without a ground truth)
     cam = gt.intrinsics
     arrays["intrinsics"] = np.array([cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height], dtype=np.float64)
     arrays["au_names"] = np.array(gt.au_names, dtype=np.str_)
@@ -564,7 +699,7 @@ def load_ground_truth(path: str | os.PathLike[str]) -> GroundTruth:
     """
     p = Path(path)
     name = p.name
-    for suffix in (".gt.npz", ".gt.json", ".avi", ".mkv", ".mp4"):
+    for suffix in (".gt.npz", ".gt.json", *VIDEO_SUFFIXES):
         if name.endswith(suffix):
             name = name[: -len(suffix)]
             break
@@ -573,6 +708,10 @@ def load_ground_truth(path: str | os.PathLike[str]) -> GroundTruth:
         raise FileNotFoundError(f"no ground truth at {npz_path}")
     with np.load(npz_path) as z:
         a = {k: z[k] for k in z.files}
+    missing = [k for k in ("intrinsics", "strings", "fps", "au_names", "event_labels", "event_frames", *_TENSOR_FIELDS)
+               if k not in a]  # fmt: skip
+    if missing:  # (a KeyError of the first, e.g. 'intrinsics')
+        raise ValueError(f"{npz_path}: not a ground truth of save_ground_truth, it lacks {', '.join(missing)}")
     fx, fy, cx, cy, width, height = (float(x) for x in a["intrinsics"])
     strings = [str(s) for s in a["strings"]]
     tensors = {k: torch.from_numpy(a[k]) for k in _TENSOR_FIELDS}
