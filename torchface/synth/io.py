@@ -26,7 +26,7 @@ from torchface.io.video import open_capture, opencv_path
 
 __all__ = [
     "LOSSLESS_CODECS",
-    "VIDEO_SUFFIXES",
+    "WRITTEN_SUFFIXES",
     "VideoSink",
     "write_video",
     "read_video",
@@ -40,7 +40,7 @@ LOSSLESS_CODECS: tuple[str, ...] = ("FFV1", "png ", "HFYU", "MJPG")
 
 #: Suffixes :class:`VideoSink` writes: FFV1 in these reads back bit-exactly (others were written unreadable, ``.mpg``,
 #: or failed as "no OpenCV video codec ... could open", ``.npy``).
-VIDEO_SUFFIXES: tuple[str, ...] = (".avi", ".mkv", ".mov", ".mp4")
+WRITTEN_SUFFIXES: tuple[str, ...] = (".avi", ".mkv", ".mov", ".mp4")
 
 
 def _check_frames(frames: object) -> Tensor:
@@ -84,7 +84,7 @@ class VideoSink:
         FileNotFoundError: ``path``'s folder does not exist.
         OSError: the file cannot be written there (a read-only folder, a full disk), naming it.
         IsADirectoryError: ``path`` is a folder.
-        ValueError: an odd or too small size, a suffix not in :data:`VIDEO_SUFFIXES`, ``fps`` not a number > 0, or a
+        ValueError: an odd or too small size, a suffix not in :data:`WRITTEN_SUFFIXES`, ``fps`` not a number > 0, or a
             name that is not valid UTF-8 (OpenCV cannot write it).
         RuntimeError: no codec of :data:`LOSSLESS_CODECS` opens the file.
 
@@ -104,10 +104,10 @@ class VideoSink:
             raise FileNotFoundError(f"{self.path}: no folder {self.path.parent} to write the video in")
         if self.path.is_dir():
             raise IsADirectoryError(f"{self.path}: a folder, not a video file name (e.g. {self.path / 'clip.avi'})")
-        if self.path.suffix.lower() not in VIDEO_SUFFIXES:
+        if self.path.suffix.lower() not in WRITTEN_SUFFIXES:
             npy = " (a .npy clip: np.save(path, frames.permute(0, 2, 3, 1).numpy()), (T, H, W, 3) RGB)"
             raise ValueError(
-                f"{self.path}: a lossless video is written as {', '.join(VIDEO_SUFFIXES)} (.avi recommended), got "
+                f"{self.path}: a lossless video is written as {', '.join(WRITTEN_SUFFIXES)} (.avi recommended), got "
                 f"{self.path.suffix or 'no suffix'!r}" + (npy if self.path.suffix.lower() == ".npy" else "")
             )
         self._tmp = partial_path(self.path)
@@ -166,7 +166,7 @@ class VideoSink:
 
 def write_video(path: str | os.PathLike[str], frames: Tensor, fps: float = 25.0) -> str:
     """Write ``(T, 3, H, W)`` RGB frames, float in ``[0, 1]`` or uint8, to ``path`` (a suffix of
-    :data:`VIDEO_SUFFIXES`, ``.avi`` recommended); returns the FourCC code used.
+    :data:`WRITTEN_SUFFIXES`, ``.avi`` recommended); returns the FourCC code used.
 
     Example:
         >>> # write_video("clip.avi", frames); read_video("clip.avi")  # the same frames, 8-bit quantised

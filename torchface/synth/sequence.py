@@ -44,7 +44,7 @@ from torchface.geometry.so3 import matrix_to_axis_angle, matrix_to_euler
 from torchface.geometry.transforms import transform_points
 from torchface.rendering.shading import LightState, render
 from torchface.synth.background import BackgroundSpec, OccluderSpec, background_frames, place_occluder
-from torchface.synth.io import VIDEO_SUFFIXES, VideoSink
+from torchface.synth.io import WRITTEN_SUFFIXES, VideoSink
 from torchface.synth.subjects import Subject, get_subject
 from torchface.synth.textures import serial
 
@@ -699,7 +699,7 @@ def load_ground_truth(path: str | os.PathLike[str]) -> GroundTruth:
     """
     p = Path(path)
     name = p.name
-    for suffix in (".gt.npz", ".gt.json", *VIDEO_SUFFIXES):
+    for suffix in (".gt.npz", ".gt.json", *WRITTEN_SUFFIXES):
         if name.endswith(suffix):
             name = name[: -len(suffix)]
             break
