@@ -55,6 +55,20 @@ def test_ground_truth_round_trip(tmp_path):
     assert not list(tmp_path.glob("*.partial*"))
 
 
+def test_a_ground_truth_saved_under_the_videos_name_is_read_back_by_it(tmp_path):
+    """save_ground_truth(gt, "clip.avi") writes clip.avi.gt.npz; load_ground_truth("clip.avi") looked for
+    clip.gt.npz alone (the video's stem) and said 'no ground truth'."""
+    _, _, gt = _light_switch_small()
+    npz, _ = save_ground_truth(gt, tmp_path / "clip.avi")
+    assert npz.name == "clip.avi.gt.npz"
+    for path in (tmp_path / "clip.avi", npz):
+        _assert_gt_equal(load_ground_truth(path), gt)
+    save_ground_truth(gt, tmp_path / "clip")  # (both: the stem's own is read first)
+    assert load_ground_truth(tmp_path / "clip.avi").name == gt.name
+    with pytest.raises(FileNotFoundError, match="other.gt.npz"):
+        load_ground_truth(tmp_path / "other.avi")
+
+
 def test_load_ground_truth_missing(tmp_path):
     with pytest.raises(FileNotFoundError):
         load_ground_truth(tmp_path / "nothing.gt.npz")

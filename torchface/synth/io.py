@@ -99,7 +99,10 @@ class VideoSink:
         if self.width < 2 or self.height < 2 or self.width % 2 or self.height % 2:
             # FFV1 and the other 4:2:0 codecs write odd sizes cropped to even ones without a word, so the file
             # would no longer match the ground truth's intrinsics and landmarks
-            raise ValueError(f"video frames must have an even width and height >= 2, got {self.width}x{self.height}")
+            raise ValueError(
+                f"video frames must have an even width and height >= 2, got {self.width}x{self.height} (the lossless "
+                "codecs crop odd sizes; render_sequence renders any size in memory)"
+            )
         if not self.path.parent.is_dir():  # (OpenCV's writer fails without a word: "no codec could open" misled)
             raise FileNotFoundError(f"{self.path}: no folder {self.path.parent} to write the video in")
         if self.path.is_dir():

@@ -692,7 +692,9 @@ def load_ground_truth(path: str | os.PathLike[str]) -> GroundTruth:
     """Read a ground truth written by :func:`save_ground_truth`.
 
     Args:
-        path: the ``.gt.npz`` file, its ``.gt.json`` sibling, the video, or the common stem.
+        path: the ``.gt.npz`` file, its ``.gt.json`` sibling, the video, or the common stem (the stem
+            :func:`save_ground_truth` was given: a video's name given there as the stem, ``clip.avi``, is read back
+            from ``clip.avi.gt.npz`` too).
 
     Example:
         >>> # gt = load_ground_truth("out/pose_sweep.gt.npz"); gt.ypr_deg.shape  -> (T, 3)
@@ -704,6 +706,9 @@ def load_ground_truth(path: str | os.PathLike[str]) -> GroundTruth:
             name = name[: -len(suffix)]
             break
     npz_path = p.with_name(name + ".gt.npz")
+    if not npz_path.is_file() and name != p.name and p.with_name(p.name + ".gt.npz").is_file():
+        # (save_ground_truth(gt, "d/clip.avi") writes d/clip.avi.gt.npz: a stem given with the video's suffix)
+        npz_path = p.with_name(p.name + ".gt.npz")
     if not npz_path.is_file():
         raise FileNotFoundError(f"no ground truth at {npz_path}")
     with np.load(npz_path) as z:
