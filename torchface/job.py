@@ -56,8 +56,9 @@ without ``resume`` first removes what earlier runs wrote for all its videos (bef
 replace an input or a landmarks file, or an output folder that is an image-folder input, are refused before anything is
 written, as are two inputs whose ``<stem>`` is the same or differs only in case (one file on macOS and Windows). CSV
 rows are flushed as they are tracked, so an interrupted run keeps ``<stem>.csv.partial``; with
-``resume=True`` a video whose JSON exists is skipped (refused when made from another input, from other first-frame
-landmarks than its landmarks file holds now, with other settings or without the meshes asked for:
+``resume=True`` a video whose JSON exists is skipped (refused when made from another input or from its file as it was
+before it changed, from other first-frame landmarks than its landmarks file holds now, with other settings or without
+the meshes asked for:
 :func:`_check_resumable`) and one with a partial CSV continues after its last complete
 row: the first frame is
 initialised again from the same landmarks (deterministic), or, for a video the online start had re-anchored (after
@@ -1659,19 +1660,27 @@ def _restore_streams(streams: list[_Stream]) -> None:
         s.from_checkpoint = "exact" if whole else "split"
 
 
+def _input_identity(path: Path) -> str:
+    """The identity of input ``path`` as the resume compares it: a file's size and modification time, an image
+    folder's image count and newest modification time (``"209508 bytes, modified 1764681857123456789 ns"``).
+
+    Raises:
+        OSError: it cannot be read (gone, or one of its images removed meanwhile).
+    """
+    if path.is_dir():
+        stats = [f.stat() for f in image_files(path)]
+        return f"{len(stats)} images, newest modified {max((st.st_mtime_ns for st in stats), default=0)} ns"
+    st = path.stat()
+    return f"{st.st_size} bytes, modified {st.st_mtime_ns} ns"
+
+
 def _settings(config: JobConfig, stream: _Stream, model: FaceModel) -> dict[str, object]:
     """What a video's rows depend on besides its frames' content: the input file's identity (size and modification
     time; an image folder's count and newest file) and its first-frame landmarks, as text, every setting that
     changes the tracking, as JSON values (:func:`_as_json`), and ``model`` where it is not CANDIDE-3
     (:func:`_model_setting`). A resumed run must agree on all of them (:func:`_read_record`,
     :func:`_setting_differences`)."""
-    path = Path(stream.reader.info.path)
-    if path.is_dir():
-        stats = [f.stat() for f in image_files(path)]
-        ident = f"{len(stats)} images, newest modified {max((st.st_mtime_ns for st in stats), default=0)} ns"
-    else:
-        st = path.stat()
-        ident = f"{st.st_size} bytes, modified {st.st_mtime_ns} ns"
+    ident = _input_identity(Path(stream.reader.info.path))
     points = np.ascontiguousarray(np.asarray(stream.landmarks, dtype=np.float64))
     # (the frame where the detector first found a face, when not the first: said only then, so that the records of
     # earlier versions, which tracked every video from its first frame, still compare equal)
@@ -2163,10 +2172,12 @@ def _check_resumable(
     video: Path, paths: dict[str, Path], config: JobConfig, model: FaceModel,
     landmarks: str | os.PathLike[str] | None = None,
 ) -> str | None:
-    """Refuse to skip a video whose complete outputs (their sidecar) were made from another input, from other
-    first-frame landmarks than the file ``landmarks`` now holds (the sidecar's ``initial_landmarks_px``, compared
-    exactly, as the sidecar stores them, a missing point's ``[null, null]`` equal to a NaN row; a file fixed in place
-    kept the results of its old points; a sidecar without them: not compared), or with other settings than
+    """Refuse to skip a video whose complete outputs (their sidecar) were made from another input, from its file as
+    it was before it changed (the sidecar's ``input.identity``, :func:`_input_identity`; a sidecar without it, or an
+    input gone: not compared), from other first-frame landmarks than the file ``landmarks`` now holds (the
+    sidecar's ``initial_landmarks_px``, compared exactly, as the sidecar stores them, a missing point's
+    ``[null, null]`` equal to a NaN row; a file fixed in place kept the results of its old points; a sidecar without
+    them: not compared), or with other settings than
     ``config``'s (those :func:`_result_settings` names, compared by :func:`_setting_differences`; a sidecar without
     one of them: not compared; a field of a settings dataclass it lacks: compared at its default,
     :func:`_with_defaults`), with another face model than ``model`` (the sidecar's ``model.sha256``; a sidecar without
@@ -2193,6 +2204,16 @@ def _check_resumable(
     except (OSError, ValueError, KeyError, TypeError, AttributeError):
         raise InputError(f"{paths['json']}: cannot resume, this sidecar is unreadable: run without --resume") from None
     _check_made_from(made_from, video, f"{paths['csv']} was")
+    then = made.get("identity")  # (sidecars before it: not compared)
+    try:
+        now = _input_identity(video) if isinstance(then, str) else then
+    except OSError:  # (gone: the complete outputs stand, as they did before the identity was recorded)
+        now = then
+    if now != then:  # (it was skipped as complete: a truncated download tracked, then downloaded again whole,
+        # kept the truncated one's rows, status 0)
+        raise InputError(f"{paths['json']}: cannot resume, these complete outputs were made from {video} as it was "
+                         f"before it changed ({then} then, {now} now): track it again without --resume (given "
+                         "alone, the other videos' outputs are kept)")  # fmt: skip
     if made_digest != _digest(model):  # (skipped as complete: the CSV's columns and values were another model's)
         raise InputError(f"{paths['json']}: cannot resume, these complete outputs were made with another face model "
                          f"({made_name}, sha256 {str(made_digest)[:16]}, then; {_model_label(model)} now): run with "
@@ -3531,6 +3552,7 @@ def _finalise(
         "torchface_output": 1,
         "input": {
             "path": str(s.reader.info.path), "resolved_path": str(Path(s.reader.info.path).resolve()),
+            "identity": s.settings.get("input file"),  # (what --resume compares)
             "kind": s.reader.info.kind, "format": s.reader.info.source_format,
             "conversion": s.reader.info.conversion, "width": W, "height": H, "fps": s.reader.info.fps,
             "fps_assumed": s.reader.info.fps_assumed,

@@ -711,6 +711,41 @@ def test_resume_refuses_to_skip_complete_outputs_made_from_other_landmarks(clip,
     assert run("--resume") == 0 and "already complete" in capsys.readouterr().out
 
 
+def test_resume_refuses_to_skip_complete_outputs_made_from_the_input_before_it_changed(clip, tmp_path, capsys):
+    """--resume skipped a complete video as done whatever its input file had become since: a truncated download
+    tracked as far as it decoded (status 0), then downloaded again whole and tracked with --resume, kept the
+    truncated one's rows, status 0 (a partial run's record compared the file's size and time; the sidecar held
+    neither). Now the sidecar's ``input.identity`` is compared, and a changed input refused (with --keep-going,
+    skipped) saying what to do; the same file untouched is skipped as complete, and a sidecar without it (an earlier
+    version's) is not compared."""
+    video, lm, _ = clip
+    short = _short_npy(video, tmp_path / "short.npy", 2)
+    out = tmp_path / "out"
+
+    def run(*extra):
+        return main(["track", str(short), "--out", str(out), "--landmarks", str(lm), "--quiet", "--no-online-refine",
+                     *extra])  # fmt: skip
+
+    assert run() == 0
+    sidecar_path = output_paths(out, "short")["json"]
+    identity = json.loads(sidecar_path.read_text())["input"]["identity"]
+    assert identity == f"{short.stat().st_size} bytes, modified {short.stat().st_mtime_ns} ns"
+    assert run("--resume") == 0 and "already complete" in capsys.readouterr().out
+    _short_npy(video, short, 3)  # (the input replaced: one frame more)
+    _assert_clean_failure(run("--resume"), capsys, tmp_path / "nothing",
+                          f"these complete outputs were made from {short} as it was before it changed ({identity} "
+                          "then, ")  # fmt: skip
+    assert run("--resume", "--keep-going") == 3
+    assert "short: skipped, not tracked" in capsys.readouterr().out
+    assert read_track_csv(output_paths(out, "short")["csv"])[1].shape[0] == 2  # (its outputs as they were)
+    sidecar = json.loads(sidecar_path.read_text())
+    del sidecar["input"]["identity"]  # (an earlier version's sidecar: not compared)
+    sidecar_path.write_text(json.dumps(sidecar))
+    assert run("--resume") == 0 and "already complete (2 frames)" in capsys.readouterr().out
+    assert run() == 0 and run("--resume") == 0  # (tracked again without --resume: its 3 frames, then skipped)
+    assert "already complete (3 frames)" in capsys.readouterr().out
+
+
 def test_resume_refuses_to_skip_complete_outputs_made_without_the_meshes_asked_for(clip, tmp_path, capsys):
     """``--resume --meshes`` over a video completed without --meshes skipped it as complete: no meshes, no word
     (the summary's file list only leaves out "_meshes/"). Now refused, as other settings are; with its meshes there
