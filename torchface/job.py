@@ -3595,6 +3595,11 @@ def _finalise(
     _record_path(p["csv"]).unlink(missing_ok=True)
     outs.insert(1, p["json"])
     short = s.total if s.total is not None and len(rows) < s.total else None  # the container's (estimated) count
+    if short is not None:  # (said in the summary only, on stdout: a script keeping stderr, or --quiet with stdout
+        # thrown away, was told nothing of a video cut short, its outputs complete and its status 0)
+        warnings.warn(f"{s.reader.info.path} declares {counted(short, 'frame')}, {len(rows)} could be decoded "
+                      f"(truncated or damaged?): its outputs are complete with those {counted(len(rows), 'frame')}",
+                      RuntimeWarning, stacklevel=2)  # fmt: skip
     failed = None if s.start_failure == StartFailure.NONE else s.start_failure.name  # (the sidecar's start.failure)
     return VideoSummary(s.name, s.reader.info.path, tuple(outs), len(rows), len(lost),
                         float(conf.mean()) if len(conf) else 0.0, fps, declared_frames=short,

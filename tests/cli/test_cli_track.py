@@ -1230,16 +1230,23 @@ def _truncated_avi(video, path):
 
 def test_a_truncated_video_is_tracked_with_a_warning(clip, tmp_path, capsys):
     """A video cut short (its container still declares every frame) is tracked as far as it decodes, and the
-    summary and sidecar say how many frames it declared (it used to end with exit status 0 and no word)."""
+    summary and sidecar say how many frames it declared (it used to end with exit status 0 and no word), and so
+    does a warning line on stderr (the summary, on stdout, said it alone: ``--quiet`` with stdout thrown away, or a
+    script logging stderr, heard nothing of it), as from Python a ``RuntimeWarning``."""
     video, lm, _ = clip
     avi = _truncated_avi(video, tmp_path / "cut.avi")
     out = tmp_path / "out"
     capsys.readouterr()
     assert main(["track", str(avi), "--out", str(out), "--landmarks", str(lm), "--quiet"]) == 0
-    text = capsys.readouterr().out
+    said = capsys.readouterr()
     sidecar = json.loads(output_paths(out, "cut")["json"].read_text())
     assert 0 < sidecar["frames"] < T and sidecar["declared_frames"] == T
-    assert f"declares {T} frames, {sidecar['frames']} could be decoded" in text, text
+    assert f"declares {T} frames, {sidecar['frames']} could be decoded" in said.out, said.out
+    assert said.err == (f"torchface: warning: {avi} declares {T} frames, {sidecar['frames']} could be decoded "
+                        f"(truncated or damaged?): its outputs are complete with those {sidecar['frames']} "
+                        "frames\n"), said.err  # fmt: skip
+    with pytest.warns(RuntimeWarning, match=f"declares {T} frames, {sidecar['frames']} could be decoded"):
+        track_videos([avi], JobConfig(out_dir=out, landmarks=(lm,)))
 
 
 def test_a_video_that_ended_short_of_its_declared_count_reports_itself_finished(clip, tmp_path):
