@@ -52,7 +52,8 @@ Everything is written under a temporary name (``.partial``) and renamed when com
 While a run goes on, ``<stem>.lock`` (holding its pid and host) keeps another run from writing the same video's
 outputs: that run is refused with a one-line error; a lock left by a run that has ended (killed), or left empty
 (killed as it made it), is taken over (:func:`_take_locks`). A run
-without ``resume`` first removes what earlier runs wrote for all its videos (before its first batch). Outputs that would
+without ``resume`` first removes what earlier runs wrote for all its videos (before its first batch; with a warning
+where they were made from another input of the same name, :func:`_warn_replaced_inputs`). Outputs that would
 replace an input or a landmarks file, or an output folder that is an image-folder input, are refused before anything is
 written, as are two inputs whose ``<stem>`` is the same or differs only in case (one file on macOS and Windows). CSV
 rows are flushed as they are tracked, so an interrupted run keeps ``<stem>.csv.partial``; with
@@ -2745,6 +2746,8 @@ def _track_opened(
     batch by batch."""
     try:
         if not config.resume:  # a fresh run (the inputs keep_going skipped too: every complete output is this run's)
+            _warn_replaced_inputs(out_dir, [(s.name, Path(s.reader.info.path)) for s in streams]
+                                  + [(x.name, x.input) for x in summaries.values() if x.refused])  # fmt: skip
             _clear_earlier_outputs(out_dir, [s.name for s in streams] + [x.name for x in summaries.values()
                                                                          if x.refused])  # fmt: skip
         # One batch: videos of one frame size and one pyramid (pyramid_for_faces of each video's own face, so that a
@@ -3472,6 +3475,24 @@ def _keep_final(state: TrackerState, streams: list[_Stream], layout: ParamLayout
     for k in ks:
         streams[k].final_shape = state.shape_coeffs[k].tolist()
         streams[k].final_neutral = neutral[k].tolist()
+
+
+def _warn_replaced_inputs(out_dir: Path, videos: Sequence[tuple[str, Path]]) -> None:
+    """Warn, for each ``(name, input)`` of a fresh run, where ``out_dir`` holds complete outputs of that name made
+    from another input (their sidecar's ``input.resolved_path``), which the run is about to remove: two videos of
+    one stem in different folders, tracked one by one into one ``--out`` (a shell loop over ``*/clip.mp4``), kept
+    the last one's outputs alone, without a word. A sidecar that cannot be read, or that names no input, is not
+    warned about."""
+    for name, video in videos:
+        path = output_paths(out_dir, name)["json"]
+        try:
+            made_from = json.loads(path.read_text(encoding="utf-8"))["input"]["resolved_path"]
+        except (OSError, ValueError, KeyError, TypeError):
+            continue
+        if isinstance(made_from, str) and Path(made_from) != video.resolve():
+            warnings.warn(f"{path}: replacing the outputs made from {made_from} with those of {video}, of the same "
+                          "name: give each its own --out (or rename one) to keep both", RuntimeWarning,
+                          stacklevel=3)  # fmt: skip
 
 
 def _clear_earlier_outputs(out_dir: Path, names: Sequence[str]) -> None:

@@ -385,6 +385,7 @@ def test_outputs_are_named_and_kept_apart_from_other_inputs_and_runs(clip, tmp_p
     rc = main(["track", "shots.npy", "--out", str(out), "--landmarks", str(lm), "--resume", "--quiet"])
     _assert_clean_failure(rc, capsys, tmp_path / "nothing", "was made from")
     assert main(["track", "shots.npy", "--out", str(out), "--landmarks", str(lm), "--quiet"]) == 0  # fresh
+    assert f"replacing the outputs made from {shots.resolve()} with those of shots.npy" in capsys.readouterr().err
     _, rows = read_track_csv(output_paths(out, "shots")["csv"])
     assert rows.shape[0] == 2 and not (out / "shots_meshes").exists()  # the 4-frame run's meshes are gone
     header, *body = output_paths(out, "shots")["csv"].read_text().splitlines(keepends=True)
@@ -412,6 +413,33 @@ def test_two_inputs_of_one_output_name_are_named_in_the_error(clip, tmp_path, ca
     _assert_clean_failure(rc, capsys, out, "a/clip.npy and b/clip.npy would write the same outputs 'clip'")
     rc = run("a/clip.npy", "a/other.npy", "./a/clip.npy")
     _assert_clean_failure(rc, capsys, out, "a/clip.npy: this input is given twice (a/clip.npy and a/clip.npy)")
+
+
+def test_a_fresh_run_warns_where_it_replaces_the_outputs_of_another_input_of_the_same_name(clip, tmp_path, capsys,
+                                                                                             monkeypatch):
+    """Two videos of one stem in different folders, tracked one run each into one --out (a shell loop over
+    ``*/clip.npy``), kept the last one's outputs alone: the second run replaced the first's, status 0, without a
+    word (given in one run, they are refused). Now a warning line names the input whose outputs are replaced; the
+    same input tracked again is not warned about."""
+    video, lm, _ = clip
+    for folder in ("a", "b"):
+        (tmp_path / folder).mkdir()
+        _short_npy(video, tmp_path / folder / "clip.npy", 2)
+    monkeypatch.chdir(tmp_path)
+    out = tmp_path / "out"
+
+    def run(path):
+        assert main(["track", path, "--out", str(out), "--landmarks", str(lm), "--quiet", "--no-online-refine"]) == 0
+        return capsys.readouterr().err
+
+    assert run("a/clip.npy") == ""
+    assert run("b/clip.npy") == (f"torchface: warning: {out / 'clip.json'}: replacing the outputs made from "
+                                 f"{tmp_path.resolve() / 'a' / 'clip.npy'} with those of b/clip.npy, of the same name: "
+                                 "give each its own --out (or rename one) to keep both\n")  # fmt: skip
+    assert json.loads((out / "clip.json").read_text())["input"]["path"] == "b/clip.npy"
+    assert run("./b/clip.npy") == ""  # (the same input)
+    with pytest.warns(RuntimeWarning, match="replacing the outputs made from .*b.clip.npy with those of a.clip.npy"):
+        track_videos([Path("a/clip.npy")], JobConfig(out_dir=out, landmarks=(lm,), refine_first=None))
 
 
 def test_two_inputs_whose_output_names_differ_only_in_case_are_refused(clip, tmp_path, capsys, monkeypatch):
