@@ -3344,6 +3344,14 @@ def _track_group(
         for s in streams[finished:]:
             _abandon(s)
         raise
+    for summary in summaries:  # (once every video of the batch is finalised: a warning made an error, -W error,
+        # leaves none of them unfinished)
+        if summary is not None and summary.declared_frames is not None:  # (said in the summary alone, on stdout: a
+            # script logging stderr, or --quiet with stdout thrown away, heard nothing of a video cut short, its
+            # outputs complete and its status 0)
+            warnings.warn(f"{summary.input} declares {counted(summary.declared_frames, 'frame')}, {summary.frames} "
+                          f"could be decoded (truncated or damaged?): its outputs are complete with those "
+                          f"{counted(summary.frames, 'frame')}", RuntimeWarning, stacklevel=2)  # fmt: skip
     by_stream = {id(s): summary for s, summary in zip(streams, summaries)}
     return [by_stream.get(id(s)) for s in batch]
 
@@ -3616,11 +3624,6 @@ def _finalise(
     _record_path(p["csv"]).unlink(missing_ok=True)
     outs.insert(1, p["json"])
     short = s.total if s.total is not None and len(rows) < s.total else None  # the container's (estimated) count
-    if short is not None:  # (said in the summary only, on stdout: a script keeping stderr, or --quiet with stdout
-        # thrown away, was told nothing of a video cut short, its outputs complete and its status 0)
-        warnings.warn(f"{s.reader.info.path} declares {counted(short, 'frame')}, {len(rows)} could be decoded "
-                      f"(truncated or damaged?): its outputs are complete with those {counted(len(rows), 'frame')}",
-                      RuntimeWarning, stacklevel=2)  # fmt: skip
     failed = None if s.start_failure == StartFailure.NONE else s.start_failure.name  # (the sidecar's start.failure)
     return VideoSummary(s.name, s.reader.info.path, tuple(outs), len(rows), len(lost),
                         float(conf.mean()) if len(conf) else 0.0, fps, declared_frames=short,
