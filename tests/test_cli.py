@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import os
+import shutil
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -202,6 +204,43 @@ def test_a_ctrl_c_while_torch_is_imported_is_one_line_and_130(tmp_path):
     help_text = subprocess.run([sys.executable, "-c", code, "track", "--help"], cwd=root, capture_output=True,
                                text=True, timeout=120)  # fmt: skip
     assert help_text.returncode == 0 and "usage: torchface track" in help_text.stdout, help_text.stderr[-2000:]
+
+
+@pytest.mark.skipif(os.name != "posix", reason="a process ends by a signal on POSIX systems only")
+def test_a_ctrl_c_stops_a_shell_loop_over_videos(tmp_path):
+    """``for v in *.mp4; do torchface track "$v" ...; done``: a Ctrl-C (SIGINT to the shell and the command, its
+    foreground process group) stopped the video being tracked, and the loop went on to the next one: the command
+    exited with 130 itself, which bash takes for a program that handled the Ctrl-C ("wait and cooperative exit"),
+    where a program that dies of SIGINT (as Python does after an uncaught Ctrl-C) stops the loop. The command
+    (``main()``, its arguments ``sys.argv``') now ends by SIGINT after its lines; ``main(argv)`` from Python still
+    returns 130 (test above). The Ctrl-C is sent to the process group by the command as the import of torch
+    begins."""
+    bash = shutil.which("bash")
+    if bash is None:
+        pytest.skip("no bash")
+    root = Path(__file__).resolve().parent.parent
+    code = (
+        "import importlib.abc, os, signal, sys\n"
+        "signal.signal(signal.SIGINT, signal.default_int_handler)\n"
+        "class CtrlC(importlib.abc.MetaPathFinder):\n"
+        "    def find_spec(self, name, path=None, target=None):\n"
+        "        if name == 'torch':\n"
+        "            os.killpg(os.getpgrp(), signal.SIGINT)\n"  # (the terminal's Ctrl-C: the shell's too)
+        "        return None\n"
+        "sys.meta_path.insert(0, CtrlC())\n"
+        "from torchface.cli import main\n"
+        "sys.argv[0] = 'torchface'\n"
+        "sys.exit(main())\n"
+    )
+    loop = 'for i in 1 2; do "$PY" -c "$CODE" demo --out "$OUT/$i"; echo "after $i: $?"; done; echo "loop ended"'
+    env = {**os.environ, "PY": sys.executable, "CODE": code, "OUT": str(tmp_path)}
+    run = subprocess.run([bash, "-c", loop], cwd=root, env=env, capture_output=True, text=True, timeout=240,
+                         start_new_session=True)  # fmt: skip
+    assert run.stdout == "" and run.returncode == -signal.SIGINT, (run.returncode, run.stdout, run.stderr[-2000:])
+    assert run.stderr.strip() == "torchface: interrupted before it started; run it again", run.stderr[-2000:]
+    alone = subprocess.run([sys.executable, "-c", code, "demo", "--out", str(tmp_path / "alone")], cwd=root,
+                           capture_output=True, text=True, timeout=120, start_new_session=True)  # fmt: skip
+    assert alone.returncode == -signal.SIGINT, (alone.returncode, alone.stderr[-2000:])
 
 
 def test_an_empty_path_is_a_usage_error_not_the_current_folder(tmp_path, capsys, monkeypatch):

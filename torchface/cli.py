@@ -633,7 +633,12 @@ def _fraction(text: str) -> float:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Entry point of the ``torchface`` console script; returns the exit status."""
+    """Entry point of the ``torchface`` console script; returns the exit status.
+
+    ``argv`` None (the command's own process: the console script, ``python -m torchface``; its arguments are
+    ``sys.argv``'s): a run stopped by Ctrl-C ends the process by SIGINT once it has said what it keeps
+    (:func:`_end_by_sigint`), so that a shell loop over videos stops there; a shell reports status 130 either way.
+    Called with ``argv`` (from Python), it returns :data:`EXIT_INTERRUPTED`."""
     for name in ("stdout", "stderr"):
         if getattr(sys, name) is None:  # closed by the caller (``>&-``): Python leaves None there
             setattr(sys, name, open(os.devnull, "w", encoding="utf-8"))
@@ -656,7 +661,26 @@ def main(argv: list[str] | None = None) -> int:
     if args.command == "track" and args.restart_after_unmatched and args.detector is None:
         parser.error("--restart-after-unmatched needs --detector (the restart starts from its landmarks)")
     with _ffmpeg_log_quiet():
-        return _run(args)
+        status = _run(args)
+    if argv is None and status == EXIT_INTERRUPTED:
+        _end_by_sigint()
+    return status
+
+
+def _end_by_sigint() -> None:
+    """End this process by SIGINT (its default action), its output flushed, as Python ends a program after an
+    uncaught ``KeyboardInterrupt``: a shell that runs a command in a loop (``for v in *.mp4; do torchface track "$v"
+    ...; done``) and gets the Ctrl-C with it stops the loop only where the command died of SIGINT (bash's "wait and
+    cooperative exit"); one that exits with 130 itself is taken for a program that handled the Ctrl-C, and the loop
+    went on to the next video. Its status as a shell reports it stays 130 (128 + SIGINT; Python's ``subprocess``:
+    -2). Not on Windows (no such signal death: its status stays 130)."""
+    if os.name != "posix":
+        return
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(OSError, ValueError, AttributeError):
+            stream.flush()
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+    os.kill(os.getpid(), signal.SIGINT)
 
 
 @contextlib.contextmanager

@@ -52,12 +52,14 @@ Everything is written under a temporary name (``.partial``) and renamed when com
 While a run goes on, ``<stem>.lock`` (holding its pid and host) keeps another run from writing the same video's
 outputs: that run is refused with a one-line error; a lock left by a run that has ended (killed), or left empty
 (killed as it made it), is taken over (:func:`_take_locks`). A run
-without ``resume`` first removes what earlier runs wrote for all its videos (before its first batch). Outputs that would
+without ``resume`` first removes what earlier runs wrote for all its videos (before its first batch; with a warning
+where they were made from another input of the same name, :func:`_warn_replaced_inputs`). Outputs that would
 replace an input or a landmarks file, or an output folder that is an image-folder input, are refused before anything is
 written, as are two inputs whose ``<stem>`` is the same or differs only in case (one file on macOS and Windows). CSV
 rows are flushed as they are tracked, so an interrupted run keeps ``<stem>.csv.partial``; with
-``resume=True`` a video whose JSON exists is skipped (refused when made from another input, from other first-frame
-landmarks than its landmarks file holds now, with other settings or without the meshes asked for:
+``resume=True`` a video whose JSON exists is skipped (refused when made from another input or from its file as it was
+before it changed, from other first-frame landmarks than its landmarks file holds now, with other settings or without
+the meshes asked for:
 :func:`_check_resumable`) and one with a partial CSV continues after its last complete
 row: the first frame is
 initialised again from the same landmarks (deterministic), or, for a video the online start had re-anchored (after
@@ -1659,19 +1661,27 @@ def _restore_streams(streams: list[_Stream]) -> None:
         s.from_checkpoint = "exact" if whole else "split"
 
 
+def _input_identity(path: Path) -> str:
+    """The identity of input ``path`` as the resume compares it: a file's size and modification time, an image
+    folder's image count and newest modification time (``"209508 bytes, modified 1764681857123456789 ns"``).
+
+    Raises:
+        OSError: it cannot be read (gone, or one of its images removed meanwhile).
+    """
+    if path.is_dir():
+        stats = [f.stat() for f in image_files(path)]
+        return f"{len(stats)} images, newest modified {max((st.st_mtime_ns for st in stats), default=0)} ns"
+    st = path.stat()
+    return f"{st.st_size} bytes, modified {st.st_mtime_ns} ns"
+
+
 def _settings(config: JobConfig, stream: _Stream, model: FaceModel) -> dict[str, object]:
     """What a video's rows depend on besides its frames' content: the input file's identity (size and modification
     time; an image folder's count and newest file) and its first-frame landmarks, as text, every setting that
     changes the tracking, as JSON values (:func:`_as_json`), and ``model`` where it is not CANDIDE-3
     (:func:`_model_setting`). A resumed run must agree on all of them (:func:`_read_record`,
     :func:`_setting_differences`)."""
-    path = Path(stream.reader.info.path)
-    if path.is_dir():
-        stats = [f.stat() for f in image_files(path)]
-        ident = f"{len(stats)} images, newest modified {max((st.st_mtime_ns for st in stats), default=0)} ns"
-    else:
-        st = path.stat()
-        ident = f"{st.st_size} bytes, modified {st.st_mtime_ns} ns"
+    ident = _input_identity(Path(stream.reader.info.path))
     points = np.ascontiguousarray(np.asarray(stream.landmarks, dtype=np.float64))
     # (the frame where the detector first found a face, when not the first: said only then, so that the records of
     # earlier versions, which tracked every video from its first frame, still compare equal)
@@ -2163,10 +2173,12 @@ def _check_resumable(
     video: Path, paths: dict[str, Path], config: JobConfig, model: FaceModel,
     landmarks: str | os.PathLike[str] | None = None,
 ) -> str | None:
-    """Refuse to skip a video whose complete outputs (their sidecar) were made from another input, from other
-    first-frame landmarks than the file ``landmarks`` now holds (the sidecar's ``initial_landmarks_px``, compared
-    exactly, as the sidecar stores them, a missing point's ``[null, null]`` equal to a NaN row; a file fixed in place
-    kept the results of its old points; a sidecar without them: not compared), or with other settings than
+    """Refuse to skip a video whose complete outputs (their sidecar) were made from another input, from its file as
+    it was before it changed (the sidecar's ``input.identity``, :func:`_input_identity`; a sidecar without it, or an
+    input gone: not compared), from other first-frame landmarks than the file ``landmarks`` now holds (the
+    sidecar's ``initial_landmarks_px``, compared exactly, as the sidecar stores them, a missing point's
+    ``[null, null]`` equal to a NaN row; a file fixed in place kept the results of its old points; a sidecar without
+    them: not compared), or with other settings than
     ``config``'s (those :func:`_result_settings` names, compared by :func:`_setting_differences`; a sidecar without
     one of them: not compared; a field of a settings dataclass it lacks: compared at its default,
     :func:`_with_defaults`), with another face model than ``model`` (the sidecar's ``model.sha256``; a sidecar without
@@ -2193,6 +2205,16 @@ def _check_resumable(
     except (OSError, ValueError, KeyError, TypeError, AttributeError):
         raise InputError(f"{paths['json']}: cannot resume, this sidecar is unreadable: run without --resume") from None
     _check_made_from(made_from, video, f"{paths['csv']} was")
+    then = made.get("identity")  # (sidecars before it: not compared)
+    try:
+        now = _input_identity(video) if isinstance(then, str) else then
+    except OSError:  # (gone: the complete outputs stand, as they did before the identity was recorded)
+        now = then
+    if now != then:  # (it was skipped as complete: a truncated download tracked, then downloaded again whole,
+        # kept the truncated one's rows, status 0)
+        raise InputError(f"{paths['json']}: cannot resume, these complete outputs were made from {video} as it was "
+                         f"before it changed ({then} then, {now} now): track it again without --resume (given "
+                         "alone, the other videos' outputs are kept)")  # fmt: skip
     if made_digest != _digest(model):  # (skipped as complete: the CSV's columns and values were another model's)
         raise InputError(f"{paths['json']}: cannot resume, these complete outputs were made with another face model "
                          f"({made_name}, sha256 {str(made_digest)[:16]}, then; {_model_label(model)} now): run with "
@@ -2724,6 +2746,8 @@ def _track_opened(
     batch by batch."""
     try:
         if not config.resume:  # a fresh run (the inputs keep_going skipped too: every complete output is this run's)
+            _warn_replaced_inputs(out_dir, [(s.name, Path(s.reader.info.path)) for s in streams]
+                                  + [(x.name, x.input) for x in summaries.values() if x.refused])  # fmt: skip
             _clear_earlier_outputs(out_dir, [s.name for s in streams] + [x.name for x in summaries.values()
                                                                          if x.refused])  # fmt: skip
         # One batch: videos of one frame size and one pyramid (pyramid_for_faces of each video's own face, so that a
@@ -3320,6 +3344,14 @@ def _track_group(
         for s in streams[finished:]:
             _abandon(s)
         raise
+    for summary in summaries:  # (once every video of the batch is finalised: a warning made an error, -W error,
+        # leaves none of them unfinished)
+        if summary is not None and summary.declared_frames is not None:  # (said in the summary alone, on stdout: a
+            # script logging stderr, or --quiet with stdout thrown away, heard nothing of a video cut short, its
+            # outputs complete and its status 0)
+            warnings.warn(f"{summary.input} declares {counted(summary.declared_frames, 'frame')}, {summary.frames} "
+                          f"could be decoded (truncated or damaged?): its outputs are complete with those "
+                          f"{counted(summary.frames, 'frame')}", RuntimeWarning, stacklevel=2)  # fmt: skip
     by_stream = {id(s): summary for s, summary in zip(streams, summaries)}
     return [by_stream.get(id(s)) for s in batch]
 
@@ -3453,6 +3485,24 @@ def _keep_final(state: TrackerState, streams: list[_Stream], layout: ParamLayout
         streams[k].final_neutral = neutral[k].tolist()
 
 
+def _warn_replaced_inputs(out_dir: Path, videos: Sequence[tuple[str, Path]]) -> None:
+    """Warn, for each ``(name, input)`` of a fresh run, where ``out_dir`` holds complete outputs of that name made
+    from another input (their sidecar's ``input.resolved_path``), which the run is about to remove: two videos of
+    one stem in different folders, tracked one by one into one ``--out`` (a shell loop over ``*/clip.mp4``), kept
+    the last one's outputs alone, without a word. A sidecar that cannot be read, or that names no input, is not
+    warned about."""
+    for name, video in videos:
+        path = output_paths(out_dir, name)["json"]
+        try:
+            made_from = json.loads(path.read_text(encoding="utf-8"))["input"]["resolved_path"]
+        except (OSError, ValueError, KeyError, TypeError):
+            continue
+        if isinstance(made_from, str) and Path(made_from) != video.resolve():
+            warnings.warn(f"{path}: replacing the outputs made from {made_from} with those of {video}, of the same "
+                          "name: give each its own --out (or rename one) to keep both", RuntimeWarning,
+                          stacklevel=3)  # fmt: skip
+
+
 def _clear_earlier_outputs(out_dir: Path, names: Sequence[str]) -> None:
     """Remove what earlier runs wrote for videos ``names`` (a fresh run's, before its first batch: they must not
     outlive it; removed batch by batch, the later batches' complete outputs outlived a run interrupted before
@@ -3531,6 +3581,7 @@ def _finalise(
         "torchface_output": 1,
         "input": {
             "path": str(s.reader.info.path), "resolved_path": str(Path(s.reader.info.path).resolve()),
+            "identity": s.settings.get("input file"),  # (what --resume compares)
             "kind": s.reader.info.kind, "format": s.reader.info.source_format,
             "conversion": s.reader.info.conversion, "width": W, "height": H, "fps": s.reader.info.fps,
             "fps_assumed": s.reader.info.fps_assumed,

@@ -385,6 +385,7 @@ def test_outputs_are_named_and_kept_apart_from_other_inputs_and_runs(clip, tmp_p
     rc = main(["track", "shots.npy", "--out", str(out), "--landmarks", str(lm), "--resume", "--quiet"])
     _assert_clean_failure(rc, capsys, tmp_path / "nothing", "was made from")
     assert main(["track", "shots.npy", "--out", str(out), "--landmarks", str(lm), "--quiet"]) == 0  # fresh
+    assert f"replacing the outputs made from {shots.resolve()} with those of shots.npy" in capsys.readouterr().err
     _, rows = read_track_csv(output_paths(out, "shots")["csv"])
     assert rows.shape[0] == 2 and not (out / "shots_meshes").exists()  # the 4-frame run's meshes are gone
     header, *body = output_paths(out, "shots")["csv"].read_text().splitlines(keepends=True)
@@ -412,6 +413,33 @@ def test_two_inputs_of_one_output_name_are_named_in_the_error(clip, tmp_path, ca
     _assert_clean_failure(rc, capsys, out, "a/clip.npy and b/clip.npy would write the same outputs 'clip'")
     rc = run("a/clip.npy", "a/other.npy", "./a/clip.npy")
     _assert_clean_failure(rc, capsys, out, "a/clip.npy: this input is given twice (a/clip.npy and a/clip.npy)")
+
+
+def test_a_fresh_run_warns_where_it_replaces_the_outputs_of_another_input_of_the_same_name(clip, tmp_path, capsys,
+                                                                                             monkeypatch):
+    """Two videos of one stem in different folders, tracked one run each into one --out (a shell loop over
+    ``*/clip.npy``), kept the last one's outputs alone: the second run replaced the first's, status 0, without a
+    word (given in one run, they are refused). Now a warning line names the input whose outputs are replaced; the
+    same input tracked again is not warned about."""
+    video, lm, _ = clip
+    for folder in ("a", "b"):
+        (tmp_path / folder).mkdir()
+        _short_npy(video, tmp_path / folder / "clip.npy", 2)
+    monkeypatch.chdir(tmp_path)
+    out = tmp_path / "out"
+
+    def run(path):
+        assert main(["track", path, "--out", str(out), "--landmarks", str(lm), "--quiet", "--no-online-refine"]) == 0
+        return capsys.readouterr().err
+
+    assert run("a/clip.npy") == ""
+    assert run("b/clip.npy") == (f"torchface: warning: {out / 'clip.json'}: replacing the outputs made from "
+                                 f"{tmp_path.resolve() / 'a' / 'clip.npy'} with those of b/clip.npy, of the same name: "
+                                 "give each its own --out (or rename one) to keep both\n")  # fmt: skip
+    assert json.loads((out / "clip.json").read_text())["input"]["path"] == "b/clip.npy"
+    assert run("./b/clip.npy") == ""  # (the same input)
+    with pytest.warns(RuntimeWarning, match="replacing the outputs made from .*b.clip.npy with those of a.clip.npy"):
+        track_videos([Path("a/clip.npy")], JobConfig(out_dir=out, landmarks=(lm,), refine_first=None))
 
 
 def test_two_inputs_whose_output_names_differ_only_in_case_are_refused(clip, tmp_path, capsys, monkeypatch):
@@ -709,6 +737,41 @@ def test_resume_refuses_to_skip_complete_outputs_made_from_other_landmarks(clip,
     assert run() == 0  # (tracked again from the fixed points)
     assert json.loads(output_paths(out, "short")["json"].read_text())["initial_landmarks_px"][30][0] == fixed[30, 0]
     assert run("--resume") == 0 and "already complete" in capsys.readouterr().out
+
+
+def test_resume_refuses_to_skip_complete_outputs_made_from_the_input_before_it_changed(clip, tmp_path, capsys):
+    """--resume skipped a complete video as done whatever its input file had become since: a truncated download
+    tracked as far as it decoded (status 0), then downloaded again whole and tracked with --resume, kept the
+    truncated one's rows, status 0 (a partial run's record compared the file's size and time; the sidecar held
+    neither). Now the sidecar's ``input.identity`` is compared, and a changed input refused (with --keep-going,
+    skipped) saying what to do; the same file untouched is skipped as complete, and a sidecar without it (an earlier
+    version's) is not compared."""
+    video, lm, _ = clip
+    short = _short_npy(video, tmp_path / "short.npy", 2)
+    out = tmp_path / "out"
+
+    def run(*extra):
+        return main(["track", str(short), "--out", str(out), "--landmarks", str(lm), "--quiet", "--no-online-refine",
+                     *extra])  # fmt: skip
+
+    assert run() == 0
+    sidecar_path = output_paths(out, "short")["json"]
+    identity = json.loads(sidecar_path.read_text())["input"]["identity"]
+    assert identity == f"{short.stat().st_size} bytes, modified {short.stat().st_mtime_ns} ns"
+    assert run("--resume") == 0 and "already complete" in capsys.readouterr().out
+    _short_npy(video, short, 3)  # (the input replaced: one frame more)
+    _assert_clean_failure(run("--resume"), capsys, tmp_path / "nothing",
+                          f"these complete outputs were made from {short} as it was before it changed ({identity} "
+                          "then, ")  # fmt: skip
+    assert run("--resume", "--keep-going") == 3
+    assert "short: skipped, not tracked" in capsys.readouterr().out
+    assert read_track_csv(output_paths(out, "short")["csv"])[1].shape[0] == 2  # (its outputs as they were)
+    sidecar = json.loads(sidecar_path.read_text())
+    del sidecar["input"]["identity"]  # (an earlier version's sidecar: not compared)
+    sidecar_path.write_text(json.dumps(sidecar))
+    assert run("--resume") == 0 and "already complete (2 frames)" in capsys.readouterr().out
+    assert run() == 0 and run("--resume") == 0  # (tracked again without --resume: its 3 frames, then skipped)
+    assert "already complete (3 frames)" in capsys.readouterr().out
 
 
 def test_resume_refuses_to_skip_complete_outputs_made_without_the_meshes_asked_for(clip, tmp_path, capsys):
@@ -1195,16 +1258,28 @@ def _truncated_avi(video, path):
 
 def test_a_truncated_video_is_tracked_with_a_warning(clip, tmp_path, capsys):
     """A video cut short (its container still declares every frame) is tracked as far as it decodes, and the
-    summary and sidecar say how many frames it declared (it used to end with exit status 0 and no word)."""
+    summary and sidecar say how many frames it declared (it used to end with exit status 0 and no word), and so
+    does a warning line on stderr (the summary, on stdout, said it alone: ``--quiet`` with stdout thrown away, or a
+    script logging stderr, heard nothing of it), as from Python a ``RuntimeWarning``."""
     video, lm, _ = clip
     avi = _truncated_avi(video, tmp_path / "cut.avi")
     out = tmp_path / "out"
     capsys.readouterr()
     assert main(["track", str(avi), "--out", str(out), "--landmarks", str(lm), "--quiet"]) == 0
-    text = capsys.readouterr().out
+    said = capsys.readouterr()
     sidecar = json.loads(output_paths(out, "cut")["json"].read_text())
     assert 0 < sidecar["frames"] < T and sidecar["declared_frames"] == T
-    assert f"declares {T} frames, {sidecar['frames']} could be decoded" in text, text
+    assert f"declares {T} frames, {sidecar['frames']} could be decoded" in said.out, said.out
+    assert said.err == (f"torchface: warning: {avi} declares {T} frames, {sidecar['frames']} could be decoded "
+                        f"(truncated or damaged?): its outputs are complete with those {sidecar['frames']} "
+                        "frames\n"), said.err  # fmt: skip
+    with pytest.warns(RuntimeWarning, match=f"declares {T} frames, {sidecar['frames']} could be decoded"):
+        track_videos([avi], JobConfig(out_dir=out, landmarks=(lm,)))
+    short = _short_npy(video, tmp_path / "short.npy", 2)  # (of the same size: one batch)
+    with warnings.catch_warnings(), pytest.raises(RuntimeWarning, match="could be decoded"):
+        warnings.simplefilter("error", RuntimeWarning)  # (a warning made an error: said once the batch is written)
+        track_videos([avi, short], JobConfig(out_dir=tmp_path / "strict", landmarks=(lm, lm), refine_first=None))
+    assert all(output_paths(tmp_path / "strict", name)["json"].is_file() for name in ("cut", "short"))
 
 
 def test_a_video_that_ended_short_of_its_declared_count_reports_itself_finished(clip, tmp_path):
