@@ -747,6 +747,9 @@ def test_bad_arguments(clips, tmp_path):
     (tmp_path / "cache").write_text("a file")  # refused at once (it failed after the first video was tracked)
     with pytest.raises(ValueError, match="not a folder"):
         VideoDataset([video], [lm], DatasetConfig(cache_dir=tmp_path / "cache"))
+    # a cache_dir inside a file: refused at once too (a NotADirectoryError after the first video was tracked)
+    with pytest.raises(ValueError, match=r"/cache/runs: cache_dir is inside .*/cache, which is not a folder$"):
+        VideoDataset([video], [lm], DatasetConfig(cache_dir=tmp_path / "cache" / "runs"))
 
 
 def test_a_missing_path_starting_with_an_unexpandable_tilde_is_told_so(tmp_path, monkeypatch):
