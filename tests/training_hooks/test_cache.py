@@ -476,3 +476,61 @@ def test_a_relative_cache_root_is_the_folder_it_named_when_made(tmp_path, monkey
     # a name that no user's home expands is a folder's name as any other (it was refused, as any leading '~' was;
     # JobConfig's out_dir and the command line take it)
     assert TrackCache("~torchface-no-such-user").root == tmp_path / "elsewhere" / "~torchface-no-such-user"
+
+
+def test_a_failed_write_names_the_cache_folder_and_what_to_do(two, config, monkeypatch):
+    """A full disk was ``OSError: [Errno 28] No space left on device``, naming neither the cache nor a way out (the
+    epoch stops: DatasetConfig.keep_going does not skip a video for the cache's error). The error keeps its errno and
+    class, and names the folder and what to do."""
+    import errno
+
+    videos, lms = two
+
+    def full(*args, **kwargs):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(np, "savez", full)
+    with pytest.raises(OSError, match=r"^\[Errno 28\] cannot store a tracked sequence in the cache folder "
+                                      + r".*/cache \(No space left on device\): free space there") as caught:
+        epoch(VideoDataset(videos[:1], lms[:1], replace(config, keep_going=True)))
+    assert caught.value.errno == errno.ENOSPC and "DatasetConfig.cache_dir" in str(caught.value)
+    assert list(config.cache_dir.iterdir()) == []
+    monkeypatch.undo()
+    real_open = open
+
+    def read_only(file, mode="r", *args, **kwargs):
+        if "w" in mode and Path(file).parent == config.cache_dir:
+            raise PermissionError(errno.EACCES, os.strerror(errno.EACCES), str(file))
+        return real_open(file, mode, *args, **kwargs)
+
+    monkeypatch.setattr("builtins.open", read_only)
+    with pytest.raises(PermissionError, match=r"\(Permission denied\): .*make it writable") as caught:
+        epoch(VideoDataset(videos[:1], lms[:1], config))
+    assert caught.value.errno == errno.EACCES
+
+
+def test_a_damaged_file_that_cannot_be_deleted_is_tracked_again(two, config, monkeypatch):
+    """A damaged file that could not be deleted (a folder that does not let this user delete) raised the deletion's
+    PermissionError out of the lookup: the epoch stopped, or with DatasetConfig.keep_going the video was skipped for
+    good, as if it were the video's fault. It is a miss: the warning says the file was kept, the video is tracked
+    again and its file replaced."""
+    import errno
+
+    videos, lms = two
+    data = VideoDataset(videos[:1], lms[:1], replace(config, keep_going=True))
+    ref = epoch(data)
+    (path,) = config.cache_dir.glob("*.npz")
+    path.write_bytes(path.read_bytes()[:100])
+    real_unlink = Path.unlink
+
+    def no_delete(self, missing_ok=False):
+        if self == path:
+            raise PermissionError(errno.EACCES, os.strerror(errno.EACCES), str(self))
+        return real_unlink(self, missing_ok)
+
+    monkeypatch.setattr(Path, "unlink", no_delete)
+    with pytest.warns(CacheWarning, match=r"damaged cache file .*; it could not be deleted \(Permission denied\), "
+                                          r"tracking again"):
+        again = epoch(data)
+    assert cached_videos(again) == {0: False} and same_items(ref, again) and not data.skipped
+    assert cached_videos(epoch(data)) == {0: True}  # (the tracked sequence replaced the damaged file)
