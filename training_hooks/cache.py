@@ -431,7 +431,9 @@ class TrackCache:
         """``exc``, raised writing a file of :attr:`root`, as an error of its class and ``errno`` that names the
         folder and what to do."""
         detail = exc.strerror if exc.errno is not None and exc.strerror else str(exc)
-        if exc.filename is not None and Path(exc.filename).parent != self.root:  # (not the temporary file)
+        if isinstance(exc, (FileExistsError, NotADirectoryError)) and exc.filename == str(self.root):
+            detail = "it is a file, or inside one"  # (mkdir's "File exists" / "Not a directory" of the folder)
+        elif exc.filename is not None and Path(exc.filename).parent != self.root:  # (not the temporary file)
             detail += f": {exc.filename}"
         message = (
             f"cannot store a tracked sequence in the cache folder {self.root} ({detail}): free space there, make it "

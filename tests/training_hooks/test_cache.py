@@ -507,6 +507,13 @@ def test_a_failed_write_names_the_cache_folder_and_what_to_do(two, config, monke
     with pytest.raises(PermissionError, match=r"\(Permission denied\): .*make it writable") as caught:
         epoch(VideoDataset(videos[:1], lms[:1], config))
     assert caught.value.errno == errno.EACCES
+    monkeypatch.undo()
+    sequence, _ = VideoDataset(videos[:1], lms[:1], replace(config, cache_dir=None)).sequence(0)
+    (config.cache_dir / "file").write_text("not a folder")
+    for root in (config.cache_dir / "file", config.cache_dir / "file" / "cache"):  # (FileExistsError, NotADirectory)
+        with pytest.raises(OSError, match=r"^\[Errno \d+\] cannot store a tracked sequence in the cache folder "
+                                          + r".*/file(/cache)? \(it is a file, or inside one\): "):
+            TrackCache(root).store("d" * 64, sequence)
 
 
 def test_a_damaged_file_that_cannot_be_deleted_is_tracked_again(two, config, monkeypatch):
