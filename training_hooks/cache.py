@@ -33,9 +33,11 @@ checks the zip structure, the digest, the key and the arrays' shapes and dtypes;
 partial or corrupted file) is reported with a :class:`CacheWarning`, deleted and treated as a miss, so the
 sequence is tracked again: a damaged file is never used (a file that another process has stored under its name
 since it was read is kept, and so is one the folder does not let this process delete: the store of the sequence
-tracked again replaces it). An error writing (a full disk, a read-only folder) raises an ``OSError`` of its class and
-``errno`` that names the folder and what to do. :meth:`TrackCache.num_frames` reads the ``meta`` record
-alone (a dataset counts a cached video's frames with it instead of decoding the video).
+tracked again replaces it); one that cannot be read now (an ``OSError``: too many open files, an I/O error; a
+``MemoryError``) is no proof of damage: kept, with a :class:`CacheWarning`, and the sequence tracked. An error
+writing (a full disk, a read-only folder) raises an ``OSError`` of its class and ``errno`` that names the folder
+and what to do. :meth:`TrackCache.num_frames` reads the ``meta`` record alone (a dataset counts a cached video's
+frames with it instead of decoding the video).
 """
 
 from __future__ import annotations
@@ -322,8 +324,8 @@ class TrackCache:
     def load(self, key: str) -> TrackedSequence | None:
         """The stored sequence of ``key``, or None when there is none or the file is damaged (then it is deleted,
         unless another process has stored a new file under its name since it was read or the folder does not let
-        this process delete it, and a :class:`CacheWarning` says why) or cannot be read now (an ``OSError``: kept,
-        a :class:`CacheWarning` says so)."""
+        this process delete it, and a :class:`CacheWarning` says why) or cannot be read now (an ``OSError`` or a
+        ``MemoryError``: kept, a :class:`CacheWarning` says so)."""
         path = self.path(key)
         try:
             read = _identity(path)
@@ -331,8 +333,13 @@ class TrackCache:
                 self.stats.misses += 1
                 return None
             sequence = _read(path, key)
-        except OSError as exc:  # the file could not be read now (too many open files, I/O error): keep it
-            warnings.warn(f"{path}: cache file unreadable now ({exc}); tracking again", CacheWarning, stacklevel=2)
+        except (OSError, MemoryError) as exc:  # could not be read now (too many open files, an I/O error, a long
+            # video's file in a process short of memory): no proof of damage, kept
+            warnings.warn(
+                f"{path}: cache file unreadable now ({type(exc).__name__}: {exc}); kept, tracking again",
+                CacheWarning,
+                stacklevel=2,
+            )
             self.stats.misses += 1
             return None
         except Exception as exc:  # any failure to read back means the file is not trustworthy

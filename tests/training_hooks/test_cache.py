@@ -541,3 +541,22 @@ def test_a_damaged_file_that_cannot_be_deleted_is_tracked_again(two, config, mon
         again = epoch(data)
     assert cached_videos(again) == {0: False} and same_items(ref, again) and not data.skipped
     assert cached_videos(epoch(data)) == {0: True}  # (the tracked sequence replaced the damaged file)
+
+
+def test_a_file_too_big_for_the_memory_left_is_kept(two, config, monkeypatch):
+    """A MemoryError while reading (a long video's file, in a worker short of memory) is no proof of damage either:
+    it was taken as one, and the good file, hours of tracking for a long video, was deleted."""
+    import training_hooks.cache as cache_module
+
+    videos, lms = two
+    epoch(VideoDataset(videos[:1], lms[:1], config))
+    (stored,) = list(config.cache_dir.glob("*.npz"))
+
+    def short_of_memory(path, key):
+        raise MemoryError("Unable to allocate 7.2 GiB for an array with shape (110000, 3, 128, 128)")
+
+    monkeypatch.setattr(cache_module, "_read", short_of_memory)
+    cache = cache_module.TrackCache(config.cache_dir)
+    with pytest.warns(CacheWarning, match=r"unreadable now \(MemoryError: Unable to allocate 7\.2 GiB"):
+        assert cache.load(stored.stem) is None
+    assert stored.is_file() and cache.stats.corrupt == 0 and cache.stats.misses == 1
