@@ -44,7 +44,6 @@ from __future__ import annotations
 
 import errno
 import hashlib
-import io
 import json
 import os
 import stat
@@ -462,18 +461,21 @@ def _identity(path: Path) -> tuple[int, int] | None:
 
 def _read(path: Path, key: str) -> TrackedSequence:
     """Read and verify one cache file; raises on anything unexpected."""
-    data = path.read_bytes()
-    with zipfile.ZipFile(io.BytesIO(data)) as z:
-        bad = z.testzip()  # CRC of every member
-        if bad is not None:
-            raise ValueError(f"member {bad} fails its CRC check")
-    with np.load(io.BytesIO(data), allow_pickle=False) as z:
-        names = set(z.files)
-        missing = [n for n in (*_ARRAYS, "meta") if n not in names]
-        if missing:
-            raise ValueError(f"missing arrays {missing}")
-        meta = json.loads(bytes(z["meta"]).decode("utf-8"))
-        arrays = {name: z[name] for name in _ARRAYS}
+    # (through one handle: one file, whatever is stored under its name meanwhile; the arrays read from it, not from a
+    # copy of its bytes, which held the sequence twice in memory)
+    with open(path, "rb") as f:
+        with zipfile.ZipFile(f) as z:
+            bad = z.testzip()  # CRC of every member
+            if bad is not None:
+                raise ValueError(f"member {bad} fails its CRC check")
+        f.seek(0)
+        with np.load(f, allow_pickle=False) as z:
+            names = set(z.files)
+            missing = [n for n in (*_ARRAYS, "meta") if n not in names]
+            if missing:
+                raise ValueError(f"missing arrays {missing}")
+            meta = json.loads(bytes(z["meta"]).decode("utf-8"))
+            arrays = {name: z[name] for name in _ARRAYS}
     if meta.get("key") != key or meta.get("format") != CACHE_FORMAT:
         raise ValueError(f"the file holds key {meta.get('key')!r} format {meta.get('format')!r}, expected {key!r}")
     if meta.get("digest") != _arrays_digest(arrays):
