@@ -569,7 +569,8 @@ def test_reading_a_file_holds_one_copy_of_its_arrays(tmp_path):
 
     n = 120
     sequence = TrackedSequence(
-        faces=torch.randint(0, 256, (n, 3, 96, 96), dtype=torch.uint8), masks=torch.ones(n, 1, 96, 96, dtype=torch.bool),
+        faces=torch.randint(0, 256, (n, 3, 96, 96), dtype=torch.uint8),
+        masks=torch.ones(n, 1, 96, 96, dtype=torch.bool),
         rotation=torch.eye(3).expand(n, 3, 3).clone(), axis_angle=torch.zeros(n, 3), translation=torch.zeros(n, 3),
         ypr_deg=torch.zeros(n, 3), anim_coeffs=torch.zeros(n, 11), expression=torch.zeros(n, 11),
         facs=torch.zeros(n, 11), illumination=torch.zeros(n, 5), confidence=torch.zeros(n),
