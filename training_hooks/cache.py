@@ -32,15 +32,18 @@ file left by a writer that was killed (``.<key>.<pid>.<id>.partial``) is never r
 checks the zip structure, the digest, the key and the arrays' shapes and dtypes; anything wrong (a truncated,
 partial or corrupted file) is reported with a :class:`CacheWarning`, deleted and treated as a miss, so the
 sequence is tracked again: a damaged file is never used (a file that another process has stored under its name
-since it was read is kept). :meth:`TrackCache.num_frames` reads the ``meta`` record
-alone (a dataset counts a cached video's frames with it instead of decoding the video).
+since it was read is kept, and so is one the folder does not let this process delete: the store of the sequence
+tracked again replaces it); one that cannot be read now (an ``OSError``: too many open files, an I/O error; a
+``MemoryError``) is no proof of damage: kept, with a :class:`CacheWarning`, and the sequence tracked. An error
+writing (a full disk, a read-only folder) raises an ``OSError`` of its class and ``errno`` that names the folder
+and what to do. :meth:`TrackCache.num_frames` reads the ``meta`` record alone (a dataset counts a cached video's
+frames with it instead of decoding the video).
 """
 
 from __future__ import annotations
 
 import errno
 import hashlib
-import io
 import json
 import os
 import stat
@@ -147,7 +150,8 @@ def code_version() -> str:
 
 
 class CacheWarning(UserWarning):
-    """A cache file was unreadable or damaged; it was deleted and the sequence is tracked again."""
+    """A cache file was unreadable or damaged; it was deleted (where it was damaged and could be) and the sequence
+    is tracked again."""
 
 
 def _file_digest(path: Path, h: "hashlib.blake2b") -> None:
@@ -318,26 +322,38 @@ class TrackCache:
 
     def load(self, key: str) -> TrackedSequence | None:
         """The stored sequence of ``key``, or None when there is none or the file is damaged (then it is deleted,
-        unless another process has stored a new file under its name since it was read, and a :class:`CacheWarning`
-        says why)."""
+        unless another process has stored a new file under its name since it was read or the folder does not let
+        this process delete it, and a :class:`CacheWarning` says why) or cannot be read now (an ``OSError`` or a
+        ``MemoryError``: kept, a :class:`CacheWarning` says so)."""
         path = self.path(key)
-        read = _identity(path)
-        if read is None:
-            self.stats.misses += 1
-            return None
         try:
+            read = _identity(path)
+            if read is None:
+                self.stats.misses += 1
+                return None
             sequence = _read(path, key)
-        except OSError as exc:  # the file could not be read now (too many open files, I/O error): keep it
-            warnings.warn(f"{path}: cache file unreadable now ({exc}); tracking again", CacheWarning, stacklevel=2)
+        except (OSError, MemoryError) as exc:  # could not be read now (too many open files, an I/O error, a long
+            # video's file in a process short of memory): no proof of damage, kept
+            warnings.warn(
+                f"{path}: cache file unreadable now ({type(exc).__name__}: {exc}); kept, tracking again",
+                CacheWarning,
+                stacklevel=2,
+            )
             self.stats.misses += 1
             return None
         except Exception as exc:  # any failure to read back means the file is not trustworthy
             # Deleted only if it is still the file read: another process (a DataLoader worker, a rank) that found it
             # damaged too may have tracked the sequence and stored a good file under its name meanwhile.
-            now = _identity(path)
-            if now == read:
-                path.unlink(missing_ok=True)
-            what = "deleted" if now in (None, read) else "a new file replaced it meanwhile, kept"
+            what = "deleted"
+            try:
+                now = _identity(path)
+                if now == read:
+                    path.unlink(missing_ok=True)
+                elif now is not None:
+                    what = "a new file replaced it meanwhile, kept"
+            except OSError as gone:  # (a folder that does not let this user delete: a miss all the same, not an error
+                # of the video's; a store replaces the file, or says why it cannot)
+                what = f"it could not be deleted ({gone.strerror or gone})"
             warnings.warn(
                 f"{path}: damaged cache file ({type(exc).__name__}: {exc}); {what}, tracking again",
                 CacheWarning,
@@ -383,11 +399,12 @@ class TrackCache:
             sequence: what to store.
             source: the video's path, recorded for people.
             config: the settings, their repr recorded for people.
+
+        Raises:
+            OSError: the file cannot be written (a full disk, a read-only folder, a folder inside a file): of the
+                error's class and ``errno``, naming :attr:`root` and what to do; no file is left.
         """
         path = self.path(key)
-        self.root.mkdir(parents=True, exist_ok=True)
-        if not self._swept:
-            self._sweep_partials()
         arrays = {name: getattr(sequence, name).numpy() for name in _ARRAYS}
         meta = {
             "key": key, "format": CACHE_FORMAT, "torchface": torchface.__version__, "digest": _arrays_digest(arrays),
@@ -397,16 +414,38 @@ class TrackCache:
         }  # fmt: skip
         tmp = self.root / f".{key}.{os.getpid()}.{uuid.uuid4().hex}.partial"
         try:
+            self.root.mkdir(parents=True, exist_ok=True)
+            if not self._swept:
+                self._sweep_partials()
             with open(tmp, "wb") as f:
                 np.savez(f, meta=np.frombuffer(json.dumps(meta).encode("utf-8"), dtype=np.uint8), **arrays)
                 f.flush()
                 os.fsync(f.fileno())
             os.replace(tmp, path)
-        except BaseException:
-            tmp.unlink(missing_ok=True)
+        except BaseException as exc:
+            try:
+                tmp.unlink(missing_ok=True)
+            except OSError:  # (a folder that does not let this user delete: the error below says more)
+                pass
+            if isinstance(exc, OSError):  # (a full disk was "[Errno 28] No space left on device", of no file)
+                raise self._write_error(exc) from exc
             raise
         self.stats.writes += 1
         return path
+
+    def _write_error(self, exc: OSError) -> OSError:
+        """``exc``, raised writing a file of :attr:`root`, as an error of its class and ``errno`` that names the
+        folder and what to do."""
+        detail = exc.strerror if exc.errno is not None and exc.strerror else str(exc)
+        if isinstance(exc, (FileExistsError, NotADirectoryError)) and exc.filename == str(self.root):
+            detail = "it is a file, or inside one"  # (mkdir's "File exists" / "Not a directory" of the folder)
+        elif exc.filename is not None and Path(exc.filename).parent != self.root:  # (not the temporary file)
+            detail += f": {exc.filename}"
+        message = (
+            f"cannot store a tracked sequence in the cache folder {self.root} ({detail}): free space there, make it "
+            f"writable, or give another cache folder (DatasetConfig.cache_dir; None tracks every epoch)"
+        )
+        return OSError(exc.errno, message) if exc.errno is not None else OSError(message)
 
 
 def _identity(path: Path) -> tuple[int, int] | None:
@@ -422,18 +461,21 @@ def _identity(path: Path) -> tuple[int, int] | None:
 
 def _read(path: Path, key: str) -> TrackedSequence:
     """Read and verify one cache file; raises on anything unexpected."""
-    data = path.read_bytes()
-    with zipfile.ZipFile(io.BytesIO(data)) as z:
-        bad = z.testzip()  # CRC of every member
-        if bad is not None:
-            raise ValueError(f"member {bad} fails its CRC check")
-    with np.load(io.BytesIO(data), allow_pickle=False) as z:
-        names = set(z.files)
-        missing = [n for n in (*_ARRAYS, "meta") if n not in names]
-        if missing:
-            raise ValueError(f"missing arrays {missing}")
-        meta = json.loads(bytes(z["meta"]).decode("utf-8"))
-        arrays = {name: z[name] for name in _ARRAYS}
+    # (through one handle: one file, whatever is stored under its name meanwhile; the arrays read from it, not from a
+    # copy of its bytes, which held the sequence twice in memory)
+    with open(path, "rb") as f:
+        with zipfile.ZipFile(f) as z:
+            bad = z.testzip()  # CRC of every member
+            if bad is not None:
+                raise ValueError(f"member {bad} fails its CRC check")
+        f.seek(0)
+        with np.load(f, allow_pickle=False) as z:
+            names = set(z.files)
+            missing = [n for n in (*_ARRAYS, "meta") if n not in names]
+            if missing:
+                raise ValueError(f"missing arrays {missing}")
+            meta = json.loads(bytes(z["meta"]).decode("utf-8"))
+            arrays = {name: z[name] for name in _ARRAYS}
     if meta.get("key") != key or meta.get("format") != CACHE_FORMAT:
         raise ValueError(f"the file holds key {meta.get('key')!r} format {meta.get('format')!r}, expected {key!r}")
     if meta.get("digest") != _arrays_digest(arrays):

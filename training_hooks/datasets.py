@@ -793,7 +793,8 @@ class DatasetConfig:
             worker in another folder, uses the same cache. None tracks every epoch. An empty string is refused
             (``Path("")`` is the working folder: say ``"."`` for it), and so is one starting with a ``~`` or
             ``~user`` that ``os.path.expanduser`` expands (not expanded here: it named a folder ``~`` in the working
-            folder; give ``os.path.expanduser(...)``).
+            folder; give ``os.path.expanduser(...)``). A dataset refuses one that is a file or inside one when it is
+            made.
         convert: convert grayscale, RGBA, 16-bit and odd-sized frames as ``torchface track --convert`` does
             (:func:`torchface.io.open_frames`) instead of raising.
         shuffle_buffer: 0 keeps the order (videos in list order, frames in time order). A positive size
@@ -810,7 +811,8 @@ class DatasetConfig:
             gone since the dataset was made) instead of raising, as ``torchface track --keep-going`` does: its items
             are left out, a :class:`SkippedVideoWarning` says so and :attr:`VideoDataset.skipped` records it (module
             docstring, "Skipping"). False (the default): the error stops the epoch. An error writing
-            :attr:`cache_dir` (a full disk, a read-only folder) is not the video's: it stops the epoch either way.
+            :attr:`cache_dir` (a full disk, a read-only folder) is not the video's: it stops the epoch either way
+            (an ``OSError`` naming the folder and what to do).
         progress_after: seconds a count of the videos' items may take before it says how far it has got, on
             stderr (module docstring, "Progress"): :meth:`VideoDataset.count_items`, :meth:`~VideoDataset.
             worker_items`, and under DDP the counts that balance the ranks, which come before the first batch. Each
@@ -1215,9 +1217,13 @@ class VideoDataset(IterableDataset):
             _check_exists(v, given)
             self._check_source(v)
         cache_dir = None if self.config.cache_dir is None else Path(self.config.cache_dir)
-        if cache_dir is not None and cache_dir.exists() and not cache_dir.is_dir():
-            # (found here, not after the first video has been tracked)
-            raise ValueError(f"{cache_dir}: cache_dir exists and is not a folder")
+        # (found here, not after the first video has been tracked; a folder inside a file was a NotADirectoryError then)
+        for there in () if cache_dir is None else (cache_dir, *cache_dir.parents):
+            if there.exists():
+                if not there.is_dir():
+                    where = "exists" if there == cache_dir else f"is inside {there}, which"
+                    raise ValueError(f"{cache_dir}: cache_dir {where} is not a folder")
+                break
         self._normalise: NormaliseFaces | None = None
         self._model_content: str | None = None  # (content_hash of the model file as the model was read from it)
         if self.config.tracking.model is not None:

@@ -476,3 +476,114 @@ def test_a_relative_cache_root_is_the_folder_it_named_when_made(tmp_path, monkey
     # a name that no user's home expands is a folder's name as any other (it was refused, as any leading '~' was;
     # JobConfig's out_dir and the command line take it)
     assert TrackCache("~torchface-no-such-user").root == tmp_path / "elsewhere" / "~torchface-no-such-user"
+
+
+def test_a_failed_write_names_the_cache_folder_and_what_to_do(two, config, monkeypatch):
+    """A full disk was ``OSError: [Errno 28] No space left on device``, naming neither the cache nor a way out (the
+    epoch stops: DatasetConfig.keep_going does not skip a video for the cache's error). The error keeps its errno and
+    class, and names the folder and what to do."""
+    import errno
+
+    videos, lms = two
+
+    def full(*args, **kwargs):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(np, "savez", full)
+    with pytest.raises(OSError, match=r"^\[Errno 28\] cannot store a tracked sequence in the cache folder "
+                                      + r".*/cache \(No space left on device\): free space there") as caught:
+        epoch(VideoDataset(videos[:1], lms[:1], replace(config, keep_going=True)))
+    assert caught.value.errno == errno.ENOSPC and "DatasetConfig.cache_dir" in str(caught.value)
+    assert list(config.cache_dir.iterdir()) == []
+    monkeypatch.undo()
+    real_open = open
+
+    def read_only(file, mode="r", *args, **kwargs):
+        if "w" in mode and Path(file).parent == config.cache_dir:
+            raise PermissionError(errno.EACCES, os.strerror(errno.EACCES), str(file))
+        return real_open(file, mode, *args, **kwargs)
+
+    monkeypatch.setattr("builtins.open", read_only)
+    with pytest.raises(PermissionError, match=r"\(Permission denied\): .*make it writable") as caught:
+        epoch(VideoDataset(videos[:1], lms[:1], config))
+    assert caught.value.errno == errno.EACCES
+    monkeypatch.undo()
+    sequence, _ = VideoDataset(videos[:1], lms[:1], replace(config, cache_dir=None)).sequence(0)
+    (config.cache_dir / "file").write_text("not a folder")
+    for root in (config.cache_dir / "file", config.cache_dir / "file" / "cache"):  # (FileExistsError, NotADirectory)
+        with pytest.raises(OSError, match=r"^\[Errno \d+\] cannot store a tracked sequence in the cache folder "
+                                          + r".*/file(/cache)? \(it is a file, or inside one\): "):
+            TrackCache(root).store("d" * 64, sequence)
+
+
+def test_a_damaged_file_that_cannot_be_deleted_is_tracked_again(two, config, monkeypatch):
+    """A damaged file that could not be deleted (a folder that does not let this user delete) raised the deletion's
+    PermissionError out of the lookup: the epoch stopped, or with DatasetConfig.keep_going the video was skipped for
+    good, as if it were the video's fault. It is a miss: the warning says the file was kept, the video is tracked
+    again and its file replaced."""
+    import errno
+
+    videos, lms = two
+    data = VideoDataset(videos[:1], lms[:1], replace(config, keep_going=True))
+    ref = epoch(data)
+    (path,) = config.cache_dir.glob("*.npz")
+    path.write_bytes(path.read_bytes()[:100])
+    real_unlink = Path.unlink
+
+    def no_delete(self, missing_ok=False):
+        if self == path:
+            raise PermissionError(errno.EACCES, os.strerror(errno.EACCES), str(self))
+        return real_unlink(self, missing_ok)
+
+    monkeypatch.setattr(Path, "unlink", no_delete)
+    with pytest.warns(CacheWarning, match=r"damaged cache file .*; it could not be deleted \(Permission denied\), "
+                                          r"tracking again"):
+        again = epoch(data)
+    assert cached_videos(again) == {0: False} and same_items(ref, again) and not data.skipped
+    assert cached_videos(epoch(data)) == {0: True}  # (the tracked sequence replaced the damaged file)
+
+
+def test_a_file_too_big_for_the_memory_left_is_kept(two, config, monkeypatch):
+    """A MemoryError while reading (a long video's file, in a worker short of memory) is no proof of damage either:
+    it was taken as one, and the good file, hours of tracking for a long video, was deleted."""
+    import training_hooks.cache as cache_module
+
+    videos, lms = two
+    epoch(VideoDataset(videos[:1], lms[:1], config))
+    (stored,) = list(config.cache_dir.glob("*.npz"))
+
+    def short_of_memory(path, key):
+        raise MemoryError("Unable to allocate 7.2 GiB for an array with shape (110000, 3, 128, 128)")
+
+    monkeypatch.setattr(cache_module, "_read", short_of_memory)
+    cache = cache_module.TrackCache(config.cache_dir)
+    with pytest.warns(CacheWarning, match=r"unreadable now \(MemoryError: Unable to allocate 7\.2 GiB"):
+        assert cache.load(stored.stem) is None
+    assert stored.is_file() and cache.stats.corrupt == 0 and cache.stats.misses == 1
+
+
+def test_reading_a_file_holds_one_copy_of_its_arrays(tmp_path):
+    """A cache file was read whole into memory and its arrays copied out of those bytes: twice the sequence at the
+    peak (14 GB for an hour's 7 GB file, in each DataLoader worker). The arrays are read from the file."""
+    import tracemalloc
+
+    n = 120
+    sequence = TrackedSequence(
+        faces=torch.randint(0, 256, (n, 3, 96, 96), dtype=torch.uint8),
+        masks=torch.ones(n, 1, 96, 96, dtype=torch.bool),
+        rotation=torch.eye(3).expand(n, 3, 3).clone(), axis_angle=torch.zeros(n, 3), translation=torch.zeros(n, 3),
+        ypr_deg=torch.zeros(n, 3), anim_coeffs=torch.zeros(n, 11), expression=torch.zeros(n, 11),
+        facs=torch.zeros(n, 11), illumination=torch.zeros(n, 5), confidence=torch.zeros(n),
+        status=torch.zeros(n, dtype=torch.int64), shape_coeffs=torch.zeros(14),
+        landmarks=torch.zeros(68, 2, dtype=torch.float64), frame_size=(4, 4),
+    )  # fmt: skip
+    cache = TrackCache(tmp_path)
+    size = cache.store("a" * 64, sequence).stat().st_size
+    tracemalloc.start()
+    try:
+        read = cache.load("a" * 64)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert read is not None and torch.equal(read.faces, sequence.faces) and torch.equal(read.masks, sequence.masks)
+    assert peak < 1.3 * size, (peak, size)  # (was 2.0 times)

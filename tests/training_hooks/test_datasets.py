@@ -747,6 +747,9 @@ def test_bad_arguments(clips, tmp_path):
     (tmp_path / "cache").write_text("a file")  # refused at once (it failed after the first video was tracked)
     with pytest.raises(ValueError, match="not a folder"):
         VideoDataset([video], [lm], DatasetConfig(cache_dir=tmp_path / "cache"))
+    # a cache_dir inside a file: refused at once too (a NotADirectoryError after the first video was tracked)
+    with pytest.raises(ValueError, match=r"/cache/runs: cache_dir is inside .*/cache, which is not a folder$"):
+        VideoDataset([video], [lm], DatasetConfig(cache_dir=tmp_path / "cache" / "runs"))
 
 
 def test_a_missing_path_starting_with_an_unexpandable_tilde_is_told_so(tmp_path, monkeypatch):
@@ -1566,11 +1569,12 @@ def test_keep_going_does_not_skip_a_video_for_the_caches_write_error(clips, conf
     from training_hooks import SkippedVideoWarning
 
     blocker = tmp_path / "not_a_folder"
-    blocker.write_text("")
     unwritable = replace(config, cache_dir=blocker / "cache")
-    with pytest.raises(OSError):
-        list(VideoDataset([clips[0].video], [clips[0].landmarks], unwritable))
+    stopping = VideoDataset([clips[0].video], [clips[0].landmarks], unwritable)
     data = VideoDataset([clips[0].video], [clips[0].landmarks], replace(unwritable, keep_going=True))
+    blocker.write_text("")  # (after the datasets are made: they refuse a cache_dir inside a file)
+    with pytest.raises(OSError, match="cannot store a tracked sequence in the cache folder"):
+        list(stopping)
     with warnings.catch_warnings():
         warnings.simplefilter("error", SkippedVideoWarning)
         with pytest.raises(OSError):
