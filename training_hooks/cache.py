@@ -407,7 +407,8 @@ class TrackCache:
         path = self.path(key)
         arrays = {name: getattr(sequence, name).numpy() for name in _ARRAYS}
         meta = {
-            "key": key, "format": CACHE_FORMAT, "torchface": torchface.__version__, "digest": _arrays_digest(arrays),
+            "key": key, "format": CACHE_FORMAT, "torchface": torchface.__version__, "code": code_version(),
+            "digest": _arrays_digest(arrays),
             "frame_size": list(sequence.frame_size), "num_frames": sequence.num_frames, "source": str(source),
             "first_frame": sequence.first_frame,
             "config": repr(config) if config is not None else "",

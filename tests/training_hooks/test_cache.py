@@ -3,6 +3,7 @@ reads a stale entry, damaged files are detected and tracked again, writes are at
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 from dataclasses import replace
@@ -291,10 +292,14 @@ def test_a_cache_filled_by_other_code_of_the_same_version_is_not_read(two, confi
     videos, lms = two
     first = epoch(VideoDataset(videos, lms, config))
     assert cached_videos(epoch(VideoDataset(videos, lms, config))) == {0: True, 1: True}
+    real = cache_module.code_version()
     monkeypatch.setattr(cache_module, "_CODE_VERSION", ["0" * 64])  # the same installed files, edited
     again = epoch(VideoDataset(videos, lms, config))
     assert cached_videos(again) == {0: False, 1: False}
     assert same_items(first, again)  # (the code did not change here: the same items)
+    # each file's meta names the code that tracked it, so that a user can tell the files no code of theirs reads
+    codes = sorted(json.loads(bytes(np.load(f)["meta"]))["code"] for f in Path(config.cache_dir).glob("*.npz"))
+    assert codes == sorted([real] * 2 + ["0" * 64] * 2), codes
 
 
 def test_the_code_version_is_a_digest_of_the_packages_files(tmp_path):
