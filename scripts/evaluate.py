@@ -206,13 +206,15 @@ def spec_fingerprint(spec: SequenceSpec) -> str:
 
     A cached sequence is reused only while this matches, so a change to the scenarios, the renderer or the
     packaged subjects re-renders it instead of scoring the tracker against stale frames. The sources hashed are
-    :data:`RENDER_SOURCES` of ``torchface/synth`` (not, e.g., the metrics) and all of ``torchface/rendering``.
+    :data:`RENDER_SOURCES` of ``torchface/synth`` (not, e.g., the metrics), all of ``torchface/rendering`` and of
+    ``torchface/model`` (the subjects' vertices: ``deform_vertices``).
     """
     h = hashlib.sha256(repr(spec).encode())
     for field_name in ("rotation", "translation", "anim"):
         h.update(getattr(spec, field_name).detach().cpu().to(torch.float64).numpy().tobytes())
     root = Path(torchface.__file__).parent
-    sources = [root / "synth" / name for name in RENDER_SOURCES] + sorted((root / "rendering").glob("*.py"))
+    sources = [root / "synth" / name for name in RENDER_SOURCES]
+    sources += sorted((root / "rendering").glob("*.py")) + sorted((root / "model").glob("*.py"))
     data = sorted(p for p in (root / "data").rglob("*") if p.is_file())
     for path in sources + data:
         h.update(path.relative_to(root).as_posix().encode())

@@ -260,7 +260,9 @@ def test_each_stream_deforms_as_it_does_alone_whatever_the_layout(layout, size):
     computed 28 of 36 such rows otherwise than alone (B = 1 to 8); they are made contiguous first. And CANDIDE-3's
     size (14 units, 113 vertices): on an AMD EPYC (AVX-512, MKL 2024.2) the rows whose output was not 64-byte aligned
     were computed otherwise than alone in every layout (9-14 of 36 rows with the ICT basis); each row of the product
-    is now aligned. A batch of none gives ``(0, V, 3)``."""
+    is now aligned. On an Intel Xeon with AVX-512 FP16 (session 65) a row alone, a plain matrix product, rounded
+    otherwise than the batched product (29-35 of 36 rows differed, either size); a row alone is now the first of a
+    batch of two. A batch of none gives ``(0, V, 3)``."""
     g = torch.Generator().manual_seed(0)
     A, V = size
     mean = torch.randn(V, 3, generator=g)

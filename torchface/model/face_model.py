@@ -62,27 +62,32 @@ def _rowwise_product(coeffs: Tensor, basis: Tensor) -> Tensor:
     A batched product with the basis expanded (``bmm``), not one ``(B, K) @ (K, D)`` matrix product: a BLAS library
     blocks a matrix product by its number of rows, so a row's rounding depended on the batch size (float32: an ICT
     Face Model stream's vertices 1.5e-5 mm apart alone and among 5, which a LOST track on the background grew), and a
-    stream in a batch was not the same stream alone to the bit. Each row here is the product a batch of one computes
-    (equal to the bit to ``coeffs @ basis`` at ``B = 1``); at 128 streams it costs about as much as the matrix
-    product on CANDIDE-3 (0.04 ms) and 4 times as much on the ICT Face Model's 9846 vertices. The coefficients are
-    made contiguous first: column-major ones (an ``(A, B)`` tensor transposed) went to ``bmm`` as they were, which
-    computed most rows otherwise than alone.
+    stream in a batch was not the same stream alone to the bit. Each row here is a product of its own; at 128
+    streams it costs about as much as the matrix product on CANDIDE-3 (0.04 ms) and 4 times as much on the ICT Face
+    Model's 9846 vertices. The coefficients are made contiguous first: column-major ones (an ``(A, B)`` tensor
+    transposed) went to ``bmm`` as they were, which computed most rows otherwise than alone.
 
     The basis is padded with zero columns to a multiple of :data:`_ROW_ALIGN` elements, so that every row of the
-    product starts as a batch of one's does, on a 64-byte boundary (the allocator's), and the padding is sliced off
-    (for ``B > 1``; the copy costs about 6 microseconds on CANDIDE-3).
-    A kernel may take another path for an output row that is not so aligned: on an AMD EPYC (AVX-512, MKL 2024.2)
-    the rows at an odd multiple of 8 bytes were computed otherwise than alone (CANDIDE-3's 339 columns: 119 of 195
-    rows for B = 1 to 8, 31 and 128; the ICT Face Model's: 82), while the Intel CPUs of earlier sessions computed
-    them alike.
+    product starts on a 64-byte boundary (the allocator's), and the padding is sliced off (the copy costs about 6
+    microseconds on CANDIDE-3). A kernel may take another path for an output row that is not so aligned: on an AMD
+    EPYC (AVX-512, MKL 2024.2) the rows at an odd multiple of 8 bytes were computed otherwise than alone
+    (CANDIDE-3's 339 columns: 119 of 195 rows for B = 1 to 8, 31 and 128; the ICT Face Model's: 82).
+
+    A single row (``B = 1``) is computed as the first of a batch of two (the row twice): ``bmm`` of one matrix is a
+    plain matrix product, and on an Intel Xeon with AVX-512 FP16 (MKL 2024.2; session 65) that product rounded
+    otherwise than the batched one, so that 2 to 8 of the rows of batches of 2 to 8 differed from the same rows
+    alone (CANDIDE-3's and the ICT Face Model's sizes alike), while every batch of two or more computed each row
+    alike. On the AMD EPYC above the batch of two gives the single row's bits, as before.
     """
     coeffs = coeffs.contiguous()  # (no copy of contiguous coefficients: the same product, to the bit)
-    num_d = basis.shape[1]
-    pad = -num_d % _ROW_ALIGN if coeffs.shape[0] > 1 else 0  # (one row is aligned as it is: no copy of the basis)
+    num_b, num_d = coeffs.shape[0], basis.shape[1]
+    if num_b == 1:  # (the batched kernel's rounding, the row's as in any batch: see above)
+        coeffs = coeffs.expand(2, -1).contiguous()
+    pad = -num_d % _ROW_ALIGN
     if pad:
         basis = torch.nn.functional.pad(basis, (0, pad))
     out = torch.bmm(coeffs.unsqueeze(1), basis.unsqueeze(0).expand(coeffs.shape[0], -1, -1)).squeeze(1)
-    return out[:, :num_d] if pad else out
+    return out[:num_b, :num_d]
 
 
 def deform_vertices(
