@@ -1,6 +1,7 @@
 """Argument types and path and device checks shared by the scripts beside this file (imported with this folder put
 first on ``sys.path``, before the scripts' heavy imports: imported by a script run as a command, it makes a Ctrl-C
-during those imports one line and exit status 130, as :func:`run_command` does in ``main``)."""
+during those imports one line and an end by SIGINT (status 130 in a shell), as :func:`run_command` does in
+``main``)."""
 
 from __future__ import annotations
 
@@ -36,7 +37,13 @@ def run_command(main: Callable[[], int | None]) -> NoReturn:
     scripted evaluation's log showed as a crash; a SIGTERM killed the script where it was, its temporary files
     left). The scripts write their outputs under temporary names until whole (:func:`written_whole`), so an
     interrupted run leaves none of them under its final name. A SIGTERM that the parent chose to ignore (or a
-    handler set outside Python) is left as it is."""
+    handler set outside Python) is left as it is.
+
+    In a script run as a command (:func:`_run_as_script`), a Ctrl-C then ends the process by SIGINT, as ``torchface``
+    does (:func:`torchface.cli._end_by_sigint`): a shell loop over a script (``for c in clips/*; do
+    scripts/evaluate.py ...; done``) stops there, where a script that exited with 130 itself was taken for one that
+    handled the Ctrl-C, and the loop went on; a shell reports 130 either way (Python's ``subprocess``: -2). Called
+    otherwise (a test), it exits with :data:`EXIT_INTERRUPTED`."""
     previous = signal.getsignal(signal.SIGTERM)
 
     def terminated(signum: int, frame: object) -> None:
@@ -49,6 +56,8 @@ def run_command(main: Callable[[], int | None]) -> NoReturn:
     except KeyboardInterrupt as exc:
         stopped = isinstance(exc, _Terminated)
         print(f"\n{Path(sys.argv[0]).name}: {'terminated' if stopped else 'interrupted'}", file=sys.stderr)
+        if not stopped:
+            _end_by_sigint()
         raise SystemExit(EXIT_TERMINATED if stopped else EXIT_INTERRUPTED) from None
     finally:
         if previous is not None and previous is not signal.SIG_IGN:
@@ -56,17 +65,38 @@ def run_command(main: Callable[[], int | None]) -> NoReturn:
     raise SystemExit(status)
 
 
+def _run_as_script() -> bool:
+    """Whether the running program (``__main__``) is a script beside this file (not a test, nor another program that
+    imported it)."""
+    where = getattr(sys.modules.get("__main__"), "__file__", None)
+    return where is not None and Path(where).resolve().parent == Path(__file__).resolve().parent
+
+
+def _end_by_sigint() -> None:
+    """In a script run as a command (:func:`_run_as_script`), end the process by SIGINT after a Ctrl-C, as
+    ``torchface`` does: :func:`torchface.cli._end_by_sigint` (bash's "wait and cooperative exit": a loop over the
+    script stops only where it died of SIGINT; not on Windows). Elsewhere, or where ``torchface.cli`` cannot be
+    imported (a Ctrl-C during the imports may have left the package half loaded), nothing: the caller exits with
+    :data:`EXIT_INTERRUPTED`."""
+    if not _run_as_script():
+        return
+    try:
+        from torchface.cli import _end_by_sigint as end  # (loads no torch)
+    except BaseException:  # (an ImportError, or a second Ctrl-C meanwhile: exit with 130 as before)
+        return
+    end()
+
+
 def _interrupted_imports_in_one_line() -> None:
     """Where the running program (``__main__``) is a script beside this file, a KeyboardInterrupt that reaches the
     top level (a Ctrl-C during the script's imports: torch takes seconds to load, before :func:`run_command` runs;
-    a KeyboardInterrupt's traceback before) is one line on stderr and exit status :data:`EXIT_INTERRUPTED`; any other
-    exception goes to the hook before. Imported by tests or another program, nothing changes. (From ``sys.excepthook``
-    the exit is ``os._exit``, after flushing stdout and stderr: no ``atexit`` handlers run, harmless here, as only an
-    interrupt outside :func:`run_command`, before the script's work, reaches it. A SIGTERM during the imports kills
-    the process silently, as the signal's default does: status 143 in a shell.)"""
-    main = sys.modules.get("__main__")
-    where = getattr(main, "__file__", None)
-    if where is None or Path(where).resolve().parent != Path(__file__).resolve().parent:
+    a KeyboardInterrupt's traceback before) is one line on stderr and an end by SIGINT (:func:`_end_by_sigint`, as
+    :func:`run_command`'s; else exit status :data:`EXIT_INTERRUPTED`); any other exception goes to the hook before.
+    Imported by tests or another program, nothing changes. (From ``sys.excepthook`` the exit is ``os._exit``, after
+    flushing stdout and stderr: no ``atexit`` handlers run, harmless here, as only an interrupt outside
+    :func:`run_command`, before the script's work, reaches it. A SIGTERM during the imports kills the process
+    silently, as the signal's default does: status 143 in a shell.)"""
+    if not _run_as_script():
         return
     previous = sys.excepthook
 
@@ -78,6 +108,7 @@ def _interrupted_imports_in_one_line() -> None:
         for stream in (sys.stdout, sys.stderr):
             with contextlib.suppress(Exception):
                 stream.flush()
+        _end_by_sigint()
         os._exit(EXIT_INTERRUPTED)
 
     sys.excepthook = hook

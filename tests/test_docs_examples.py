@@ -15,6 +15,7 @@ The blocks' placeholders are the smallest real inputs they imply, rendered by ``
 from __future__ import annotations
 
 import importlib.util
+import json
 import re
 import shlex
 import shutil
@@ -295,6 +296,9 @@ def test_readme_command_lines_run_on_a_tiny_clip(tmp_path, monkeypatch, capsys):
         writer.release()
     shutil.copy("clip.mp4", "a.mp4")
     shutil.copy("clip.mp4", "b.mp4")
+    Path("frames").mkdir()  # (an image folder: the --fps line)
+    for k, frame in enumerate(image):
+        cv2.imwrite(f"frames/{k:03d}.png", frame)
     np.savetxt("first_frame.csv", landmarks[0].numpy(), delimiter=",", header="x,y", comments="")
     lines = _readme_command_lines()
     assert len(lines) >= 9
@@ -326,13 +330,16 @@ def test_readme_command_lines_run_on_a_tiny_clip(tmp_path, monkeypatch, capsys):
         assert rc == 0, (line, captured.err)
         if argv[0] == "track":
             out = Path(argv[argv.index("--out") + 1])
-            for video in (a for a in argv[1:] if a.endswith((".mp4", ".avi"))):
+            for video in (a for a in argv[1:] if a.endswith((".mp4", ".avi", "/"))):
                 stem = Path(video).stem
                 for suffix in (".csv", ".json", "_overlay.mp4", "_plot.png", "_normalised.mp4"):
                     assert (out / f"{stem}{suffix}").is_file(), (line, stem + suffix)
                 assert len((out / f"{stem}.csv").read_text().splitlines()) == 1 + 8
             if "--resume" in argv:
                 assert "already complete" in captured.out + captured.err, line
+            if "--fps" in argv:  # (the folder's timestamps at that rate)
+                side = json.loads((out / "frames.json").read_text())
+                assert side["input"]["fps"] == float(argv[argv.index("--fps") + 1]) and side["input"]["fps_given"]
         if argv[0] == "render-demo":
             out = Path(argv[argv.index("--out") + 1])
             assert {p.name for p in out.iterdir()} >= {"pose_sweep.avi", "pose_sweep.gt.npz", "pose_sweep.gt.json"}

@@ -7,6 +7,7 @@ Examples::
     torchface track a.mp4 b.mp4 --out results --detector dlib   # same-size videos are tracked as one batch
     torchface track clip.mp4 --out results --landmarks lm.csv --resume   # continue an interrupted run
     torchface track gray16.avi --out results --landmarks lm.csv --convert  # gray/RGBA/16-bit/odd-sized frames
+    torchface track frames/ --out results --landmarks lm.csv --fps 30   # an image folder's frames, 30 per second
     torchface track clip.mp4 --out results --landmarks lm.csv --motion-prediction 1   # constant-velocity starts
     torchface track clip.mp4 --out results --landmarks lm.csv --smooth   # + the pose smoothed over time (smooth_*)
     torchface track clips/*.mp4 --out results --detector dlib --keep-going   # skip the bad ones (status 3)
@@ -257,6 +258,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--convert", action="store_true",
         help="convert grayscale, RGBA and 16-bit frames to RGB and crop odd sizes to even (default: reject them)",
     )  # fmt: skip
+    track.add_argument(
+        "--fps", type=_frame_rate, default=None, metavar="F",
+        help="frame rate of the inputs that have none (image folders, .npy arrays, a video whose container gives "
+        "none): their timestamps are frame / F and their overlay runs at F (default 25, the sidecar's "
+        "input.fps_assumed); a video with its own rate keeps it, with a warning",
+    )  # fmt: skip
     track.add_argument("--meshes", action="store_true", help="also write one PLY mesh per frame")
     track.add_argument(
         "--lookahead", action="store_true",
@@ -428,7 +435,7 @@ def _focal_hint(message: object) -> object:
 def _run_track(
     videos, out_dir, landmarks, detector, focal, device, resume, meshes, quiet, convert=False, lookahead=False,
     online_refine=True, max_batch=128, restart_after_unmatched=0, motion_prediction=0.0, model=None, smooth=False,
-    keep_going=False, keep_expression=False,
+    keep_going=False, keep_expression=False, fps=None,
 ) -> int:
     from torchface.geometry._checks import check_number
     from torchface.job import InputSkipped, JobConfig, VideosStopped, track_videos
@@ -451,6 +458,7 @@ def _run_track(
         resume=resume, convert=convert, meshes=meshes, lookahead=LookaheadConfig() if lookahead else None,
         refine_first=LookaheadConfig() if online_refine else None, max_batch=max_batch, tracker=tracker, model=model,
         smoothing=SmoothingConfig() if smooth else None, keep_going=keep_going, keep_expression=keep_expression,
+        fps=fps,
     )  # fmt: skip
     display = None if quiet else ProgressDisplay()
     summaries = None
@@ -621,6 +629,18 @@ def _landmarks_among_videos(videos: list[Path], landmarks: list[Path] | None) ->
             "the first were taken as videos")  # fmt: skip
 
 
+def _frame_rate(text: str) -> float:
+    """An argparse ``type``: a frame rate in :data:`torchface.job.FPS_RANGE` (``--fps``), else a one-line usage error
+    (``must be a number of frames per second in (0.001, 1000], got '0'``)."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not 0.001 < value <= 1000.0:  # (NaN and inf too; torchface.job.FPS_RANGE, not imported here: it loads torch)
+        raise argparse.ArgumentTypeError(f"must be a number of frames per second in (0.001, 1000], got {text!r}")
+    return value
+
+
 def _fraction(text: str) -> float:
     """An argparse ``type``: a number in [0, 1] (``--motion-prediction``), else a one-line usage error."""
     try:
@@ -757,7 +777,7 @@ def _dispatch(args: argparse.Namespace) -> int:
                           args.resume, args.meshes, args.quiet, args.convert, args.lookahead,
                           not args.no_online_refine, args.max_batch, args.restart_after_unmatched,
                           args.motion_prediction, args.model, args.smooth, args.keep_going,
-                          args.keep_expression)  # fmt: skip
+                          args.keep_expression, args.fps)  # fmt: skip
     if args.command == "demo":
         from torchface.job import DEMO_ATTRIBUTION, demo_inputs
 

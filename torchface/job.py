@@ -170,7 +170,7 @@ from torchface.io.table import (
     result_rows, track_columns,
 )
 from torchface.io.video import (
-    IMAGE_SUFFIXES, VIDEO_SUFFIXES, FrameReader, image_files, open_frames, opencv_path,
+    ASSUMED_FPS, IMAGE_SUFFIXES, VIDEO_SUFFIXES, FrameReader, image_files, open_frames, opencv_path,
 )  # fmt: skip
 from torchface.model.candide import load_candide3
 from torchface.model.face_model import FaceModel
@@ -207,6 +207,11 @@ __all__ = [
 #: takes about 0.6 GB per video (measured, one 3840x2160 video 1.1 GB at its peak, two 1.7 GB), so 128 of them at
 #: once did not fit in memory; they are tracked 4 at a time (1920x1080: 18), which leaves their results as they were.
 BATCH_PIXELS: int = 128 * 640 * 480
+
+#: The frame rates :class:`JobConfig`'s ``fps`` (``torchface track --fps``) takes, frames per second: above 1000 the
+#: CSV's millisecond ``timestamp`` of two rows could coincide (and a container's rate is taken as none there,
+#: :class:`torchface.io.VideoInfo`'s ``fps_assumed``); OpenCV's mp4v writer cannot write the overlay at 0.001 or less.
+FPS_RANGE: str = "(0.001, 1000]"
 
 #: Credit line of the embedded demo clip.
 DEMO_ATTRIBUTION: str = (
@@ -310,6 +315,18 @@ class JobConfig:
             the resume is refused. False (the default): the first refused
             input refuses the whole run (every refused input named), nothing tracked. The results of the videos
             tracked do not depend on it.
+        fps: the frame rate (frames per second, in (0.001, 1000]) of the inputs that have none of their own (image
+            folders, ``.npy`` arrays, a single image, a video whose container gives no plausible rate:
+            :func:`torchface.io.open_frames`' ``fps``; ``torchface track --fps``), or None for the default 25: their
+            CSV ``timestamp`` is ``frame / fps`` (a container's own frame times are still written where it gives
+            them), their overlay and normalised videos run at it, and the sidecar's ``input.fps`` is it, with
+            ``input.fps_given`` true and ``fps_assumed`` false. A video that gives its own rate keeps it, with a
+            ``UserWarning`` that says ``fps`` was not used for it. Over 1000 frames/s the rows' millisecond
+            timestamps would coincide (a container's rate is taken as none there too); at 0.001 or less the mp4v
+            overlay cannot be written. The tracking does not depend on it (but for ``smoothing``, which runs at the
+            frames' times). A resume with another rate for such an input is refused (a partial CSV would hold the
+            rows of two clocks; None is :data:`~torchface.io.video.ASSUMED_FPS`, 25, so ``fps=25`` resumes a run
+            without it).
     """
 
     out_dir: str | os.PathLike[str]
@@ -331,6 +348,7 @@ class JobConfig:
     smoothing: SmoothingConfig | None = None
     keep_going: bool = False
     keep_expression: bool = False
+    fps: float | None = None
 
     def __post_init__(self) -> None:
         if self.smoothing is not None and not isinstance(self.smoothing, SmoothingConfig):
@@ -367,6 +385,8 @@ class JobConfig:
             raise TypeError(f"device must be a device name (str) or a torch.device, got {type(self.device).__name__}")
         check_device(self.device)  # (it was refused only when the job ran; kept as given: the sidecar writes it)
         object.__setattr__(self, "focal", check_number(self.focal, "focal", "(0, inf)", True, "pixels"))
+        fps = check_number(self.fps, "fps", FPS_RANGE, True, "frames per second")
+        object.__setattr__(self, "fps", None if fps is None else float(fps))
         # (NaN: every frame counted low, the detector asked without end)
         object.__setattr__(self, "redetect_below", check_number(self.redetect_below, "redetect_below", "(-inf, inf)"))
         for name in ("resume", "convert", "meshes", "keep_going", "keep_expression"):  # "no" was true
@@ -1686,9 +1706,14 @@ def _settings(config: JobConfig, stream: _Stream, model: FaceModel) -> dict[str,
     # (the frame where the detector first found a face, when not the first: said only then, so that the records of
     # earlier versions, which tracked every video from its first frame, still compare equal)
     late = {"first face at frame": stream.start} if stream.start else {}
+    # (the rate --fps gave an input without one: said only where it is not the rate assumed without it, so that the
+    # records of runs without it, and of earlier versions, still compare equal, and --fps 25 resumes a run without it,
+    # rows and times alike; a video's own rate is in its frames' times, which the replay checks)
+    info = stream.reader.info
+    given = {"--fps": float(info.fps)} if info.fps_given and info.fps != ASSUMED_FPS else {}
     return {
         "input file": ident, "first-frame landmarks": hashlib.sha256(points.tobytes()).hexdigest()[:16], **late,
-        **_as_json(_setting_values(config)), **_model_setting(model),
+        **given, **_as_json(_setting_values(config)), **_model_setting(model),
     }  # fmt: skip
 
 
@@ -1848,7 +1873,8 @@ def _said_difference(name: str, then: object, now: object) -> str:
         return f"{name} {'on' if then is not None else 'off'} then, {'on' if now is not None else 'off'} now"
     # (a setting left unset: "--focal None then" said Python's None where the user gave no --focal; a flag says on /
     # off, as --smooth does, not Python's True / False)
-    unset = {"--focal": "default", "--model": "CANDIDE-3 (no --model)", "--keep-expression": "off"}.get(name, "none")
+    unset = {"--focal": "default", "--model": "CANDIDE-3 (no --model)", "--keep-expression": "off",
+             "--fps": "none (25 assumed)"}.get(name, "none")  # fmt: skip
 
     def said(value: object) -> object:
         return unset if value is None else ("on" if value else "off") if isinstance(value, bool) else value
@@ -2018,7 +2044,7 @@ def _read_record(
     # (compared as text, an upgrade that added a field to TrackerConfig, or 5 for 5.0, refused an equal setting)
     differ = _changed_settings(made_with, settings)
     # (made with a model, or with the expression kept: settings a record holds only when given)
-    differ += [k for k in ("--model", "--keep-expression") if k in made_with and k not in settings]
+    differ += [k for k in ("--model", "--keep-expression", "--fps") if k in made_with and k not in settings]
     if differ:
         what = "; ".join(_said_difference(k, made_with.get(k), settings.get(k)) for k in differ)
         raise InputError(
@@ -2182,7 +2208,10 @@ def _check_resumable(
     ``config``'s (those :func:`_result_settings` names, compared by :func:`_setting_differences`; a sidecar without
     one of them: not compared; a field of a settings dataclass it lacks: compared at its default,
     :func:`_with_defaults`), with another face model than ``model`` (the sidecar's ``model.sha256``; a sidecar without
-    it was made with CANDIDE-3), or without the meshes ``config.meshes`` asks for.
+    it was made with CANDIDE-3), at another rate than ``config.fps`` gives an input without one of its own (the
+    sidecar's ``input.fps`` where ``input.fps_given`` or ``input.fps_assumed``, against ``config.fps`` or
+    :data:`~torchface.io.video.ASSUMED_FPS`; an input with its own rate: not compared), or without the meshes
+    ``config.meshes`` asks for.
 
     Returns:
         The name of the failure of the start that the sidecar records (its ``start.failure``, :func:`_start_record`;
@@ -2202,6 +2231,10 @@ def _check_resumable(
         size = (int(made["width"]), int(made["height"])) if made_lm is not None else (0, 0)  # (the points' frame)
         made_model = sidecar.get("model", {})
         made_digest, made_name = made_model.get("sha256", _candide_digest()), made_model.get("name", "CANDIDE-3")
+        # (the rate of an input without one of its own, --fps's or the one assumed; a sidecar of an input with its own
+        # rate, or of an earlier version without fps_assumed: not compared)
+        rated = made.get("fps_given") is True or made.get("fps_assumed") is True
+        made_fps = float(made["fps"]) if rated else None
     except (OSError, ValueError, KeyError, TypeError, AttributeError):
         raise InputError(f"{paths['json']}: cannot resume, this sidecar is unreadable: run without --resume") from None
     _check_made_from(made_from, video, f"{paths['csv']} was")
@@ -2230,9 +2263,15 @@ def _check_resumable(
     made_with = _ran_online_start(_with_defaults(made_with, _result_settings(config)))  # (a field added since: at
     # its default; an earlier version's online_start where none ran: none)
     differ = [k for k in now if k in made_with and _setting_differences(made_with[k], now[k])]
+    now_fps = ASSUMED_FPS if config.fps is None else config.fps
+    if rated and made_fps != now_fps:  # (its timestamps and videos at another rate than --fps asks for now)
+        differ.append("fps")
+        made_with = {**made_with, "fps": None if made.get("fps_given") is not True else made_fps}
+        now = {**now, "fps": config.fps}
     if differ:  # (it was skipped as complete: a --resume over many videos with another --focal kept the old ones)
         names = {"focal": "--focal", "convert": "--convert", "lookahead": "--lookahead", "online_start": "online start",
-                 "detector": "--detector", "smoothing": "--smooth", "keep_expression": "--keep-expression"}  # fmt: skip
+                 "detector": "--detector", "smoothing": "--smooth", "keep_expression": "--keep-expression",
+                 "fps": "--fps"}  # fmt: skip
         what = "; ".join(_said_difference(names.get(k, k.replace("_", " ")), made_with[k], now[k]) for k in differ)
         raise InputError(f"{paths['json']}: cannot resume, these complete outputs were made with other settings "
                          f"({what}): run with their settings, or without --resume")  # fmt: skip
@@ -2440,8 +2479,12 @@ def _open_input(
     Raises:
         InputError: the input cannot be tracked (unreadable, a bad first frame or landmarks file, no face found).
     """
-    reader = open_frames(path, convert=config.convert)
+    reader = open_frames(path, convert=config.convert, fps=config.fps)
     try:
+        if config.fps is not None and not reader.info.fps_given:  # (its frames' times are the container's)
+            warnings.warn(f"{path}: --fps {config.fps:g} not used for it: the video gives its own frame rate, "
+                          f"{reader.info.fps:g} frames/s, which its timestamps and overlay follow", UserWarning,
+                          stacklevel=2)  # fmt: skip
         frame = next(reader)
         lm = config.landmarks[k] if config.landmarks else None
         t0 = time.perf_counter()
@@ -2494,7 +2537,7 @@ def _reopen(streams: Sequence[_Stream], convert: bool, keep_going: bool = False)
             try:
                 first, s.held = s.held, None
                 if first is None:  # (else open since its check, at its first frame: not opened and decoded again)
-                    s.reader = open_frames(info.path, convert=convert)
+                    s.reader = open_frames(info.path, convert=convert, fps=info.fps if info.fps_given else None)
                     if (s.reader.info.height, s.reader.info.width) != (info.height, info.width):
                         raise InputError(f"{info.path}: its frames are {s.reader.info.width}x{s.reader.info.height} "
                                          f"now, {info.width}x{info.height} when the run started: was it replaced?")
@@ -3584,11 +3627,11 @@ def _finalise(
             "identity": s.settings.get("input file"),  # (what --resume compares)
             "kind": s.reader.info.kind, "format": s.reader.info.source_format,
             "conversion": s.reader.info.conversion, "width": W, "height": H, "fps": s.reader.info.fps,
-            "fps_assumed": s.reader.info.fps_assumed,
+            "fps_assumed": s.reader.info.fps_assumed, "fps_given": s.reader.info.fps_given,
         },  # fmt: skip
         "versions": package_versions(),
         "config": {**_result_settings(config), "device": config.device, "landmarks": s.landmarks_source,
-                   "resume": config.resume, "batch_streams": B},  # fmt: skip
+                   "resume": config.resume, "batch_streams": B, "fps": config.fps},  # fmt: skip
         "camera": {
             "width": intr.width, "height": intr.height, "fx": intr.fx, "fy": intr.fy, "cx": intr.cx, "cy": intr.cy,
             "frame": "OpenCV: x right, y down, z forward; millimetres",

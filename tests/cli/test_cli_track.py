@@ -491,8 +491,8 @@ def test_only_one_batchs_inputs_are_open_at_a_time(clip, tmp_path, monkeypatch):
     is_open, most, opened = set(), [0], []
     real_open = job.open_frames
 
-    def counted(path, convert=False):
-        reader = real_open(path, convert=convert)
+    def counted(path, convert=False, fps=None):
+        reader = real_open(path, convert=convert, fps=fps)
         opened.append(path.stem)
         is_open.add(id(reader))
         most[0] = max(most[0], len(is_open))
@@ -3645,8 +3645,8 @@ def _timed_reader(monkeypatch, ms):
 
     real_open = torchface.job.open_frames
 
-    def opened(path, convert=False):
-        reader = real_open(path, convert=convert)
+    def opened(path, convert=False, fps=None):
+        reader = real_open(path, convert=convert, fps=fps)
         if ms:
             times = iter(list(ms))
             reader.clock = lambda: next(times)
@@ -3911,8 +3911,8 @@ def test_a_resumed_videos_rows_of_other_times_stop_that_video_only(clip, tmp_pat
     clocks: dict[str, list[float]] = {}
     real_open = torchface.job.open_frames
 
-    def opened(path, convert=False):  # (a fake clock for the inputs named in clocks)
-        reader = real_open(path, convert=convert)
+    def opened(path, convert=False, fps=None):  # (a fake clock for the inputs named in clocks)
+        reader = real_open(path, convert=convert, fps=fps)
         if clocks.get(Path(path).stem):
             times = iter(list(clocks[Path(path).stem]))
             reader.clock = lambda: next(times)

@@ -4,6 +4,7 @@ scripts look for the shared assets."""
 
 from __future__ import annotations
 
+import os
 import sys
 from pathlib import Path
 
@@ -586,11 +587,15 @@ def test_scripts_use_no_private_name_of_another_script():
 def test_a_ctrl_c_while_a_script_imports_torch_is_one_line_with_status_130(tmp_path):
     """A Ctrl-C during a script's top-of-file imports (torch takes seconds to load) printed a KeyboardInterrupt's
     traceback: ``run_command`` catches it only in ``main``. Each script imports _argtypes first, which, in a script
-    run as a command, makes it one line and exit status 130. (A ``torch`` that raises KeyboardInterrupt when
-    imported stands in for the Ctrl-C.)"""
+    run as a command, makes it one line and an end by SIGINT (status 130 in a shell; -2 for ``subprocess``; 130 where
+    there are no such signal deaths). (A ``torch`` that raises KeyboardInterrupt when imported stands in for the
+    Ctrl-C.)"""
     import ast
     import os
+    import signal
     import subprocess
+
+    status = -signal.SIGINT if os.name == "posix" else 130
 
     (tmp_path / "torch.py").write_text("raise KeyboardInterrupt\n")
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), str(SCRIPTS.parent)])}
@@ -604,11 +609,51 @@ def test_a_ctrl_c_while_a_script_imports_torch_is_one_line_with_status_130(tmp_p
                for a in n.names} | {n.module.split(".")[0] for n in ast.parse(path.read_text()).body
                                     if isinstance(n, ast.ImportFrom) and n.module}  # fmt: skip
         if top & {"torch", "torchface", "evaluate", "training_hooks"}:  # (each imports torch)
-            assert (run.returncode, run.stderr.strip()) == (130, f"{path.name}: interrupted"), (path.name, run.stderr)
+            assert (run.returncode, run.stderr.strip()) == (status, f"{path.name}: interrupted"), (path.name,
+                                                                                                run.stderr)  # fmt: skip
             stopped.append(path.name)
         else:  # (benchmark_track.py imports torch only in the functions that need it)
             assert run.returncode == 0 and "usage:" in run.stdout, (path.name, run.stderr)
     assert len(stopped) >= 13 and "evaluate.py" in stopped, stopped
+
+
+@pytest.mark.skipif(os.name != "posix", reason="a process ends by a signal on POSIX systems only")
+def test_a_ctrl_c_stops_a_shell_loop_over_a_script(tmp_path):
+    """``for c in ...; do scripts/evaluate.py ...; done``: a Ctrl-C (SIGINT to the shell and the script, its
+    foreground process group) stopped the script, and the loop went on to the next run: the script exited with 130
+    itself (``run_command``, and the hook of a Ctrl-C during its imports), which bash takes for a program that
+    handled the Ctrl-C ("wait and cooperative exit"). The scripts now end by SIGINT after their line, as ``torchface``
+    does (tests/test_cli.py, ``test_a_ctrl_c_stops_a_shell_loop_over_videos``). The Ctrl-C is sent to the process
+    group by a stand-in module as it is imported: ``torch`` at the top of evaluate.py (the imports' hook),
+    ``cv2`` in benchmark_track.py's ``main``, which imports it only there (``run_command``)."""
+    import shutil
+    import signal
+    import subprocess
+
+    bash = shutil.which("bash")
+    if bash is None:
+        pytest.skip("no bash")
+    ctrl_c = (
+        "import os, signal, time\n"
+        "signal.signal(signal.SIGINT, signal.default_int_handler)\n"  # (a background shell's SIGINT is ignored)
+        "os.killpg(os.getpgrp(), signal.SIGINT)\n"  # (the terminal's Ctrl-C: the shell's too)
+        "time.sleep(30)\n"
+    )
+    for script, module, args in (("evaluate.py", "torch", "--help"),
+                                 ("benchmark_track.py", "cv2", f"--cache {tmp_path / 'cache'}")):  # fmt: skip
+        fake = tmp_path / module
+        fake.mkdir()
+        (fake / f"{module}.py").write_text(ctrl_c)
+        env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(fake), str(SCRIPTS.parent)]), "PY": sys.executable,
+               "SCRIPT": str(SCRIPTS / script), "ARGS": args}  # fmt: skip
+        loop = 'for i in 1 2; do "$PY" "$SCRIPT" $ARGS; echo "after $i: $?"; done; echo "loop ended"'
+        run = subprocess.run([bash, "-c", loop], env=env, capture_output=True, text=True, timeout=120,
+                             start_new_session=True)  # fmt: skip
+        assert (run.stdout, run.returncode) == ("", -signal.SIGINT), (script, run.returncode, run.stdout, run.stderr)
+        assert run.stderr.strip() == f"{script}: interrupted", (script, run.stderr)
+        alone = subprocess.run([sys.executable, str(SCRIPTS / script), *args.split()], env=env, capture_output=True,
+                               text=True, timeout=120, start_new_session=True)  # fmt: skip
+        assert alone.returncode == -signal.SIGINT, (script, alone.returncode, alone.stderr)
 
 
 def test_benchmark_caches_lose_the_temporary_files_of_killed_runs(tmp_path, monkeypatch):

@@ -37,7 +37,7 @@ import os
 import re
 import shlex
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from types import TracebackType
 from typing import cast
@@ -49,6 +49,7 @@ from torch import Tensor
 
 from torchface._frame_values import value_scale, value_scale_hint
 from torchface._words import counted
+from torchface.geometry._checks import check_number
 from torchface.io.errors import InputError
 
 __all__ = [
@@ -59,6 +60,7 @@ __all__ = [
     "folder_of_videos_hint",
     "image_files",
     "MIN_SIZE",
+    "ASSUMED_FPS",
     "FrameReader",
     "VideoInfo",
     "array_convert_hint",
@@ -77,6 +79,9 @@ VIDEO_SUFFIXES: tuple[str, ...] = (
 )
 #: Smallest accepted frame side in pixels (the tracker's coarsest pyramid level needs a few pixels).
 MIN_SIZE: int = 32
+#: The frame rate of an input that has none of its own (an image folder, an array, a single image, a container without
+#: a plausible rate; :class:`VideoInfo`'s ``fps_assumed``), frames per second, unless :func:`open_frames` is given one.
+ASSUMED_FPS: float = 25.0
 #: How to proceed when a frame is grayscale, RGBA, 16-bit or odd-sized (ends every such error message).
 CONVERT_HINT: str = (
     'convert it first, e.g. ffmpeg -i in.mp4 -pix_fmt rgb24 -vf "crop=trunc(iw/2)*2:trunc(ih/2)*2" out.mp4, '
@@ -122,14 +127,18 @@ class VideoInfo:
         kind: ``"video"``, ``"images"`` or ``"array"``.
         width: W of the first frame.
         height: H of the first frame.
-        fps: frame rate (the container's, else 25: see ``fps_assumed``).
+        fps: frame rate (the container's, else :func:`open_frames`' ``fps``, else :data:`ASSUMED_FPS`, 25: see
+            ``fps_assumed``).
         num_frames: frame count if the input states it (a container's count can be approximate; a stream's
             unknown count, which OpenCV gives as -1 or a huge negative number, is None), else None.
         source_format: what the first frame stored, e.g. ``"uint8 BGR"``, ``"uint16 gray"``.
         conversion: what ``convert=True`` did to it, e.g. ``"uint16 gray -> uint8-range RGB; cropped 159x119 to
             158x118"``; empty when the frames are used as stored.
         fps_assumed: True when ``fps`` is the default 25, not the input's: image folders, arrays, a single image
-            file, and videos whose container gives no frame rate or one outside (0, 1000) frames/s.
+            file, and videos whose container gives no frame rate or one outside (0, 1000) frames/s; False where
+            :func:`open_frames`' ``fps`` gave their rate (``fps_given``).
+        fps_given: True when ``fps`` is the rate :func:`open_frames` was given for such an input (``torchface track
+            --fps``), False where it is the input's own or the default 25.
     """
 
     path: Path
@@ -141,6 +150,7 @@ class VideoInfo:
     source_format: str
     conversion: str = ""
     fps_assumed: bool = False
+    fps_given: bool = False
 
 
 def _layout(array: np.ndarray, where: str) -> np.ndarray:
@@ -397,6 +407,14 @@ class FrameReader:
         self.close()
 
 
+def _given_rate(info: VideoInfo, fps: float | None) -> VideoInfo:
+    """``info`` with the rate ``fps`` (:func:`open_frames`' ``fps``) where its own is assumed (``fps_assumed``) and
+    ``fps`` is given; else ``info`` as it is."""
+    if fps is None or not info.fps_assumed:
+        return info
+    return replace(info, fps=float(fps), fps_assumed=False, fps_given=True)
+
+
 def _video_frames(cap: cv2.VideoCapture) -> Iterator[tuple[np.ndarray, bool]]:
     while True:
         ok, img = cap.read()
@@ -532,13 +550,19 @@ def _stored_layout(p: Path, cap: cv2.VideoCapture, decoded: np.ndarray) -> np.nd
     return raw
 
 
-def open_frames(path: str | os.PathLike[str], convert: bool = False) -> FrameReader:
+def open_frames(path: str | os.PathLike[str], convert: bool = False, fps: float | None = None) -> FrameReader:
     """Open a video file, an image folder or a ``.npy`` array and read its first frame.
 
     Args:
         path: the input.
         convert: convert grayscale, RGBA, 16-bit and odd-sized frames (:func:`frame_to_tensor`) instead of
             rejecting them.
+        fps: the frame rate (a finite number > 0, frames per second) of an input that has none of its own (an
+            image folder, an array, a single image file, a video whose container gives no plausible rate: those
+            whose :class:`VideoInfo` ``fps_assumed`` would be True), used instead of the default 25: the frames'
+            :attr:`~FrameReader.timestamp` are ``frame / fps`` (a container's own times are still taken where it
+            gives them), ``info.fps`` is it, ``fps_assumed`` False and ``fps_given`` True. A video's own rate is
+            kept (``fps_given`` False: compare ``info.fps_given`` to tell). None (the default): 25 for them.
 
     Returns:
         A :class:`FrameReader` whose :attr:`~FrameReader.info` describes the input (its ``width`` and
@@ -552,6 +576,7 @@ def open_frames(path: str | os.PathLike[str], convert: bool = False) -> FrameRea
     Example:
         >>> # with open_frames("clip.mp4") as frames: first = next(frames)   # (3, H, W)
     """
+    fps = check_number(fps, "fps", "(0, inf)", True, "frames per second")  # (before the input is opened)
     p = Path(path)
     if not p.exists():
         raise InputError(f"{p}: no such file or folder")
@@ -570,7 +595,8 @@ def open_frames(path: str | os.PathLike[str], convert: bool = False) -> FrameRea
         first_image = _bgr_image(first_arr, True)
         _check_size(p, first)
         conv = _conversion(first_arr, fmt, format_problems(first_arr))
-        info = VideoInfo(p, "images", first.shape[-1], first.shape[-2], 25.0, len(files), fmt, conv, True)
+        info = VideoInfo(p, "images", first.shape[-1], first.shape[-2], ASSUMED_FPS, len(files), fmt, conv, True)
+        info = _given_rate(info, fps)
         return FrameReader(info, first, rest, stored_size=first_arr.shape[:2], convert=convert, files=files,
                            first_image=first_image)  # fmt: skip
     if p.suffix.lower() == ".npy":
@@ -608,7 +634,9 @@ def open_frames(path: str | os.PathLike[str], convert: bool = False) -> FrameRea
             raise InputError(head + array_convert_hint(head.rsplit(": frames are ", 1)[-1])) from None
         _check_size(p, first)
         conv = _conversion(array[0], fmt, format_problems(array[0]))
-        info = VideoInfo(p, "array", first.shape[-1], first.shape[-2], 25.0, int(array.shape[0]), fmt, conv, True)
+        info = VideoInfo(p, "array", first.shape[-1], first.shape[-2], ASSUMED_FPS, int(array.shape[0]), fmt, conv,
+                         True)  # fmt: skip
+        info = _given_rate(info, fps)
         return FrameReader(info, first, rest, stored_size=array.shape[1:3], convert=convert)
     if not os.access(p, os.R_OK):
         raise InputError(f"{p}: permission denied")
@@ -634,13 +662,14 @@ def open_frames(path: str | os.PathLike[str], convert: bool = False) -> FrameRea
     channels = 1 if stored.ndim == 2 else stored.shape[2]
     fmt = f"{stored.dtype} {({1: 'gray', 3: 'BGR', 4: 'BGRA'})[channels]}"
     conv = _conversion(stored, fmt, problems)
-    fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
+    rate = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
     count = float(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0.0)  # -1 or garbage (-1.9e14: a raw .mjpeg) when unknown
-    assumed = not (math.isfinite(fps) and 0 < fps < 1000)
+    assumed = not (math.isfinite(rate) and 0 < rate < 1000)
     declared = int(count) if math.isfinite(count) and count >= 1 else None
     if p.suffix.lower() in IMAGE_SUFFIXES:  # one image, read as a video of one frame: FFmpeg's image demuxer gave
         assumed, declared = True, 1  # 25 frames/s as the input's own (the JSON's fps_assumed false) and no count
-    fps = 25.0 if assumed else fps
-    info = VideoInfo(p, "video", first.shape[-1], first.shape[-2], fps, declared, fmt, conv, assumed)
+    rate = ASSUMED_FPS if assumed else rate
+    info = _given_rate(VideoInfo(p, "video", first.shape[-1], first.shape[-2], rate, declared, fmt, conv, assumed),
+                       fps)  # fmt: skip
     return FrameReader(info, first, _video_frames(cap), cap.release, stored_size=img.shape[:2], convert=convert,
                        clock=lambda: cap.get(cv2.CAP_PROP_POS_MSEC), first_image=first_image)  # fmt: skip
