@@ -3299,20 +3299,20 @@ def _track_group(
                     state, result = state.select(keep), result.select(keep)
                     smooth = None if smooth is None else smooth.select(keep)
                     first_R, first_t = first_R[keep], first_t[keep]
-                    ended = [(live[k], live_paths[k], live_mesh[k]) for k in range(len(live))
+                    complete = [(live[k], live_paths[k], live_mesh[k]) for k in range(len(live))
                              if k not in keep and live[k].error is None]  # fmt: skip
                     written = [not replaying[k] for k in keep]  # (row t - 1's, as a checkpoint after it says)
                     live[:] = [live[k] for k in keep]  # (in place: the recovery's callback reads this list)
                     live_paths, live_mesh = [live_paths[k] for k in keep], [live_mesh[k] for k in keep]
                     nxt = [nxt[k] for k in keep]
-                    if ended:  # complete: finalised now, not as the batch ends (an interruption meanwhile kept them
+                    if complete:  # finalised now, not as the batch ends (an interruption meanwhile kept them
                         # partial, and --resume replayed them); first the checkpoint of the others as the smaller
                         # batch they go on as (a resume from theirs of the whole batch went on split: _restore_streams)
                         t_aside = time.perf_counter()
                         if t >= checkpoint_from and not _write_checkpoints(state, smooth, first_R, first_t, live,
                                                                            live_paths, t - 1, written):  # fmt: skip
                             checkpoint_from = sys.maxsize  # (warned: none for this batch)
-                        for s, p, mt in ended:  # (the loop's time so far, its time in the batch: s.t_active)
+                        for s, p, mt in complete:  # (the loop's time so far, its time in the batch: s.t_active)
                             early[id(s)] = _finalise(model, s, p, mt, config, streams, intr, t_init,
                                                      cast(float, s.t_active), t_idle, run.tracker.num_levels)
                         t_track0 += time.perf_counter() - t_aside  # (not the loop's time: the others' fps as before)
