@@ -1279,10 +1279,13 @@ def test_a_truncated_video_is_tracked_with_a_warning(clip, tmp_path, capsys):
     with pytest.warns(RuntimeWarning, match=f"declares {T} frames, {sidecar['frames']} could be decoded"):
         track_videos([avi], JobConfig(out_dir=out, landmarks=(lm,)))
     short = _short_npy(video, tmp_path / "short.npy", 2)  # (of the same size: one batch)
-    with warnings.catch_warnings(), pytest.raises(RuntimeWarning, match="could be decoded"):
-        warnings.simplefilter("error", RuntimeWarning)  # (a warning made an error: said once the batch is written)
-        track_videos([avi, short], JobConfig(out_dir=tmp_path / "strict", landmarks=(lm, lm), refine_first=None))
-    assert all(output_paths(tmp_path / "strict", name)["json"].is_file() for name in ("cut", "short"))
+    whole = _short_npy(video, tmp_path / "whole.npy", T)  # (longer than the cut one: it is finalised first)
+    for other in (short, whole):
+        strict = tmp_path / f"strict-{other.stem}"
+        with warnings.catch_warnings(), pytest.raises(RuntimeWarning, match="could be decoded"):
+            warnings.simplefilter("error", RuntimeWarning)  # (a warning made an error: said once the batch is written)
+            track_videos([avi, other], JobConfig(out_dir=strict, landmarks=(lm, lm), refine_first=None))
+        assert all(output_paths(strict, name)["json"].is_file() for name in ("cut", other.stem))
 
 
 def test_a_video_that_ended_short_of_its_declared_count_reports_itself_finished(clip, tmp_path):
