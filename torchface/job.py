@@ -49,6 +49,8 @@ they agree with the CSV, lost and failed rows included, and a resumed run draws 
 run did.
 
 Everything is written under a temporary name (``.partial``) and renamed when complete; the JSON is renamed last.
+A video's outputs are finalised as soon as its last frame is tracked: one that ends before others of its batch is
+complete then (after their checkpoint as the smaller batch they go on as), while they go on.
 While a run goes on, ``<stem>.lock`` (holding its pid and host) keeps another run from writing the same video's
 outputs: that run is refused with a one-line error; a lock left by a run that has ended (killed), or left empty
 (killed as it made it), is taken over (:func:`_take_locks`). A run
@@ -94,12 +96,13 @@ Past those frames (from frame ``max_frames``; without the online start from fram
 :data:`CHECKPOINT_EVERY` frames the loop writes each video's checkpoint, ``<stem>.state.partial``
 (:func:`_write_checkpoints`: its part of the tracker's state, templates and mosaic included, of the pose filter, its
 first pose and bookkeeping; tensors and plain data, :mod:`torchface._checkpoint`, read with ``weights_only=True``),
-removed once the video is complete. A resume goes on from it where it matches the partial CSV
-(:func:`_load_checkpoint`: settings, row count, last row; else one warning line and the rows as below): the rows
-written after it are cut off and tracked again, and the videos of the checkpoint's batch are tracked as that batch
-again (:func:`_checkpoint_batches`), their states joined (:func:`torchface._checkpoint.join`, the inverse of
-``select``) after their last row (:func:`_joined`). Measured: a 200-frame 160x120 pose sweep interrupted after 170
-rows (its checkpoint at 150) resumed byte for byte as the uninterrupted run (CSV, overlay, normalised face) alone,
+removed once the video is complete (a video that ends before others of its batch: as it ends). A resume goes on from
+it where it matches the partial CSV (:func:`_load_checkpoint`: settings, row count, last row; else one warning line
+and the rows as below): the rows written after it are cut off and tracked again, and the videos of the checkpoint's
+batch are tracked as that batch again (:func:`_checkpoint_batches`), their states joined
+(:func:`torchface._checkpoint.join`, the inverse of ``select``) after their last row (:func:`_joined`). Measured: a
+200-frame 160x120 pose sweep interrupted after 170 rows (its checkpoint at 150) resumed byte for byte as the
+uninterrupted run (CSV, overlay, normalised face) alone,
 with ``smoothing``, with a detector re-detecting every 5 frames and as a batch of 3 sweeps of 193-200 frames, where
 from its CSV's rows (the checkpoint removed) it went up to 1.10 mm, 1.36 degrees (the distance between the
 translations, the angle between the rotations) and 0.12 of confidence off (the batch: 3.51 mm, 3.33 degrees, 0.65;
@@ -3142,7 +3145,9 @@ def _record_anchors(state: TrackerState, streams: list[_Stream], paths: list[dic
 def _track_group(
     model: FaceModel, streams: list[_Stream], config: JobConfig, detector, progress, count: int, members: list[int]
 ) -> list[VideoSummary | None]:
-    """Track one batch of same-size videos to the end and finalise their outputs; per video its summary, or None
+    """Track one batch of same-size videos to the end and finalise their outputs, each video's as it ends (one that
+    ends before others of its batch as it leaves it, after their checkpoint as the smaller batch they go on as; a
+    warning it has to say, once the whole batch is finalised); per video its summary, or None
     for one stopped by a frame that could not be read (``_Stream.error``; its partial CSV kept) or, with
     ``keep_going``, one whose outputs could not be opened (:func:`_open_outputs`: ``_Stream.refused``; not tracked,
     the others tracked as a batch without it). ``members``: the streams' places among the ``count`` inputs checked
@@ -3231,6 +3236,7 @@ def _track_group(
         t_init = time.perf_counter() - t_start
         t_track0 = t_iter = time.perf_counter()
         t_idle = 0.0  # the loop's time in which every live stream replayed rows from its CSV (timings_s.batch_fps)
+        early: dict[int, VideoSummary] = {}  # the videos finalised as they ended, before the batch (by id)
         t = 0
         with boundary:  # (its handlers given back however the loop ends; a signal that waited run as it ends)
             while True:
@@ -3286,12 +3292,6 @@ def _track_group(
                     if not _write_checkpoints(state, smooth, first_R, first_t, live, live_paths, t,
                                               [not r for r in replaying]):  # fmt: skip
                         checkpoint_from = sys.maxsize  # (warned: none for this batch)
-                    else:  # the videos that ended before (their rows complete: a resume replays them, none tracked
-                        # again) keep no checkpoint of the batch they were in: resumed from it, alone, as the others
-                        # have newer ones of their own, their last rows were cut off and tracked again as another batch
-                        for s, p in zip(streams, paths):
-                            if s.done and s.error is None and all(s is not x for x in live):
-                                _checkpoint_path(p["csv"]).unlink(missing_ok=True)
                 if stop:  # (one that arrives after `stop` was read waits for the next step's checkpoint)
                     boundary.check()
                 nxt = []
@@ -3342,9 +3342,23 @@ def _track_group(
                     state, result = state.select(keep), result.select(keep)
                     smooth = None if smooth is None else smooth.select(keep)
                     first_R, first_t = first_R[keep], first_t[keep]
+                    complete = [(live[k], live_paths[k], live_mesh[k]) for k in range(len(live))
+                             if k not in keep and live[k].error is None]  # fmt: skip
+                    written = [not replaying[k] for k in keep]  # (row t - 1's, as a checkpoint after it says)
                     live[:] = [live[k] for k in keep]  # (in place: the recovery's callback reads this list)
                     live_paths, live_mesh = [live_paths[k] for k in keep], [live_mesh[k] for k in keep]
                     nxt = [nxt[k] for k in keep]
+                    if complete:  # finalised now, not as the batch ends (an interruption meanwhile kept them
+                        # partial, and --resume replayed them); first the checkpoint of the others as the smaller
+                        # batch they go on as (a resume from theirs of the whole batch went on split: _restore_streams)
+                        t_aside = time.perf_counter()
+                        if t >= checkpoint_from and not _write_checkpoints(state, smooth, first_R, first_t, live,
+                                                                           live_paths, t - 1, written):  # fmt: skip
+                            checkpoint_from = sys.maxsize  # (warned: none for this batch)
+                        for s, p, mt in complete:  # (the loop's time so far, its time in the batch: s.t_active)
+                            early[id(s)] = _finalise(model, s, p, mt, config, streams, intr, t_init,
+                                                     cast(float, s.t_active), t_idle, run.tracker.num_levels)
+                        t_track0 += time.perf_counter() - t_aside  # (not the loop's time: the others' fps as before)
                 # (one video: its frame itself, not a copy stacked: 2 ms of CPU a 1080p frame; nothing changes a frame)
                 frames = (nxt[0].unsqueeze(0) if len(nxt) == 1 else torch.stack(nxt)).to(device=device, dtype=dtype)
                 t_iter = time.perf_counter()
@@ -3376,7 +3390,9 @@ def _track_group(
     finished = 0
     try:
         for s, p, mt in zip(streams, paths, mesh_tmp):
-            if s.error is None:
+            if id(s) in early:  # (finalised as it ended, the others going on)
+                summaries.append(early[id(s)])
+            elif s.error is None:
                 summaries.append(_finalise(model, s, p, mt, config, streams, intr, t_init, t_track, t_idle,
                                            run.tracker.num_levels))
             else:  # its rows so far stay in the partial CSV; nothing else of it is kept

@@ -610,16 +610,19 @@ def test_batch_fps_is_the_batchs_frames_over_its_time(clip, tmp_path):
     """``timings_s.batch_fps`` was ``B * fps`` of each video: in a batch of a 3-frame and a 1-frame video the two
     sidecars gave two different speeds for one batch, the longer one's 1.5 times the batch's. And a video's ``fps``
     was its frames over the whole batch's loop: the short one's fell with the long one's length (a 3-frame video in a
-    batch with a long one: 0.0083 frames/s where the batch ran at 2.6); it is over the time it was in the batch."""
+    batch with a long one: 0.0083 frames/s where the batch ran at 2.6); it is over the time it was in the batch.
+    The short one, finalised as it ends, says the batch's loop up to then (its ``track`` and ``batch_fps``: the
+    batch's 2 frames then)."""
     video, lm, _ = clip
     inputs = [_short_npy(video, tmp_path / "long.npy", 3), _short_npy(video, tmp_path / "short.npy", 1)]
     out = tmp_path / "out"
     summaries = track_videos(inputs, JobConfig(out_dir=out, landmarks=(lm, lm), refine_first=None))
     timings = [json.loads((out / f"{name}.json").read_text())["timings_s"] for name in ("long", "short")]
-    assert timings[0]["track"] == timings[1]["track"] > 0
-    assert timings[0]["batch_fps"] == timings[1]["batch_fps"] == pytest.approx(4 / timings[0]["track"])
+    assert timings[0]["batch_fps"] == pytest.approx(4 / timings[0]["track"])
+    assert timings[1]["batch_fps"] == pytest.approx(2 / timings[1]["track"])
     assert timings[0]["active"] == timings[0]["track"]  # (the long one: in the batch for the whole loop)
-    assert 0 < timings[1]["active"] < timings[0]["track"]  # (the short one left it after its frame, 2 steps before)
+    assert 0 < timings[1]["active"] == timings[1]["track"] < timings[0]["track"]  # (the short one left it after its
+    # frame, 2 steps before, and was finalised then)
     for t, frames, s in zip(timings, (3, 1), summaries):
         assert t["replay"] == 0.0 and t["fps"] == pytest.approx(frames / t["active"]) and s.fps == t["fps"]
 
@@ -1276,10 +1279,13 @@ def test_a_truncated_video_is_tracked_with_a_warning(clip, tmp_path, capsys):
     with pytest.warns(RuntimeWarning, match=f"declares {T} frames, {sidecar['frames']} could be decoded"):
         track_videos([avi], JobConfig(out_dir=out, landmarks=(lm,)))
     short = _short_npy(video, tmp_path / "short.npy", 2)  # (of the same size: one batch)
-    with warnings.catch_warnings(), pytest.raises(RuntimeWarning, match="could be decoded"):
-        warnings.simplefilter("error", RuntimeWarning)  # (a warning made an error: said once the batch is written)
-        track_videos([avi, short], JobConfig(out_dir=tmp_path / "strict", landmarks=(lm, lm), refine_first=None))
-    assert all(output_paths(tmp_path / "strict", name)["json"].is_file() for name in ("cut", "short"))
+    whole = _short_npy(video, tmp_path / "whole.npy", T)  # (longer than the cut one: it is finalised first)
+    for other in (short, whole):
+        strict = tmp_path / f"strict-{other.stem}"
+        with warnings.catch_warnings(), pytest.raises(RuntimeWarning, match="could be decoded"):
+            warnings.simplefilter("error", RuntimeWarning)  # (a warning made an error: said once the batch is written)
+            track_videos([avi, other], JobConfig(out_dir=strict, landmarks=(lm, lm), refine_first=None))
+        assert all(output_paths(strict, name)["json"].is_file() for name in ("cut", other.stem))
 
 
 def test_a_video_that_ended_short_of_its_declared_count_reports_itself_finished(clip, tmp_path):

@@ -305,12 +305,16 @@ def test_resume_from_a_checkpoint_without_the_online_start(clips, tmp_path, mode
     assert side["resumed"]["checkpoint"] == "exact" and side["start"] == ref["start"]
 
 
-def test_a_video_that_ended_before_its_batch_was_interrupted_keeps_its_rows(clips, tmp_path):
-    """A batch of two videos, the second of 6 frames: it ends after the checkpoint at 4 rows, and the first goes on
-    alone (its checkpoint at 8 rows, of a batch of itself). Interrupted after 10 rows of the first, the second's CSV
-    is complete: resumed, its rows are kept (replayed, none tracked), not cut back to its checkpoint at 4 rows and
-    tracked again alone (its rows then parted from its batch's by float rounding), and both CSVs and videos are the
-    uninterrupted run's, byte for byte."""
+@pytest.mark.parametrize("stop", [7, STOP])
+def test_a_video_that_ended_before_its_batch_is_complete_as_it_ends(clips, tmp_path, stop):
+    """A batch of two videos, the second of 6 frames: it ends after the checkpoint at 4 rows, and its outputs are
+    final as it ends, the first going on alone (its checkpoint at 6 rows, then 8, of a batch of itself).
+    Interrupted after ``stop`` rows of the first (before or after its checkpoint at 8), the second is complete, its
+    outputs those of the uninterrupted run, byte for byte, and no partial file of it is left; resumed, it is
+    skipped, and the first goes on from its checkpoint of itself, as the uninterrupted run went on (``exact``),
+    every output the uninterrupted run's. (Before, the second stayed partial until the first ended: interrupted, it
+    kept its rows alone, replayed by the resume; and a resume from the first's checkpoint of both, at 4 rows, went
+    on from it split.)"""
     short = tmp_path / "c.npy"
     np.save(short, np.load(clips[1][0])[:6])
     both = [clips[0], (short, clips[1][1])]
@@ -318,20 +322,24 @@ def test_a_video_that_ended_before_its_batch_was_interrupted_keeps_its_rows(clip
     out = tmp_path / "out"
 
     def interrupt(p):
-        if p.done == STOP and p.index == 0:
+        if p.done == stop and p.index == 0:
             raise KeyboardInterrupt
 
-    with pytest.raises(KeyboardInterrupt):
+    with pytest.raises(KeyboardInterrupt) as caught:
         track_videos([v for v, _ in both], _config(out, both), progress=interrupt)
-    assert read_track_csv(out / "c.csv.partial")[1].shape[0] == 6
-    assert torch.load(out / "a.state.partial", weights_only=True)["batch"] == ["a"]
+    assert "complete: c" in caught.value.kept, caught.value.kept
+    assert _same_outputs(tmp_path / "ref", out, ["c"]) == []
+    assert (out / "c.json").is_file() and (out / "c_plot.png").is_file()
+    assert sorted(f.name for f in out.iterdir() if f.name.startswith("c") and "partial" in f.name) == []
+    ck = torch.load(out / "a.state.partial", weights_only=True)
+    assert ck["batch"] == ["a"] and ck["rows"] == (6 if stop < 8 else 8)
     with warnings.catch_warnings():
         warnings.simplefilter("error", RuntimeWarning)
-        track_videos([v for v, _ in both], _config(out, both, resume=True))
+        summaries = track_videos([v for v, _ in both], _config(out, both, resume=True))
+    assert [x.skipped for x in summaries] == [False, True]
     assert _same_outputs(tmp_path / "ref", out, ["a", "c"]) == []
-    side = json.loads((out / "c.json").read_text())
-    assert side["resumed"]["rows"] == 6 and side["resumed"]["tracked_again"] == 0
     assert json.loads((out / "a.json").read_text())["resumed"]["checkpoint"] == "exact"  # (its batch: a alone)
+    assert [f.name for f in out.iterdir() if "partial" in f.name] == []
 
 
 def test_a_fresh_run_removes_an_earlier_runs_checkpoints(clips, tmp_path):
@@ -619,6 +627,41 @@ def test_sigterm_in_the_command_line_writes_its_checkpoint_and_exits_143(clips, 
     assert main(args(tmp_path / "out", "--resume")) == 0
     assert len(calls) == N - (stop + 1)
     assert (tmp_path / "out" / "a.csv").read_bytes() == (tmp_path / "ref" / "a.csv").read_bytes()
+
+
+def test_sigterm_after_a_shorter_video_ended_leaves_it_complete(clips, tmp_path, monkeypatch, capsys):
+    """``torchface track`` of a batch of two, the second of 6 frames, sent SIGTERM once the first has 9 rows: the
+    second's outputs are complete (every file, under its final name, none partial; the line says so), and
+    ``--resume`` skips it, tracking the first alone from its checkpoint; both CSVs are the uninterrupted run's, byte
+    for byte. (Before, the second's outputs waited for the first's end: it stayed ``c.csv.partial``, and the resume
+    replayed it.)"""
+    import signal
+
+    from torchface.cli import main
+
+    short = tmp_path / "c.npy"
+    np.save(short, np.load(clips[1][0])[:6])
+    (video, lm), stop = clips[0], 8
+
+    def args(out: Path, *more: str) -> list[str]:
+        return ["track", str(video), "--landmarks", str(lm), str(short), "--landmarks", str(clips[1][1]), "--out",
+                str(out), "--no-online-refine", "--quiet", *more]  # fmt: skip
+
+    assert main(args(tmp_path / "ref")) == 0
+    _signalling_step(monkeypatch, stop, [signal.SIGTERM])
+    assert main(args(tmp_path / "out")) == 143
+    err = capsys.readouterr().err
+    assert "rows kept in " in err and "a.csv.partial (9 rows); complete: c: run the same command with --resume" in err
+    out = tmp_path / "out"
+    assert sorted(f.name for f in out.iterdir() if f.name.startswith("c")) == [
+        "c.csv", "c.json", "c_normalised.mp4", "c_overlay.mp4", "c_plot.png"]  # fmt: skip
+    assert (out / "c.csv").read_bytes() == (tmp_path / "ref" / "c.csv").read_bytes()
+    calls = _signalling_step(monkeypatch, 0, [])
+    assert main(args(out, "--resume")) == 0
+    assert len(calls) == N - (stop + 1)  # (the first's steps after its checkpoint; none of the second's)
+    for n in ("a", "c"):
+        assert (out / f"{n}.csv").read_bytes() == (tmp_path / "ref" / f"{n}.csv").read_bytes()
+    assert json.loads((out / "a.json").read_text())["resumed"]["checkpoint"] == "exact"
 
 
 @pytest.mark.filterwarnings("ignore:SIGINT. stopping once:RuntimeWarning")
