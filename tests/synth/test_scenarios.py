@@ -335,6 +335,14 @@ def test_make_scenario_and_keyframe_path_refuse_what_int_and_nan_passed():
         with pytest.raises(TypeError, match=match):
             make_scenario("pose_sweep", *args)
     assert make_scenario("pose_sweep", np.int64(2), 64, torch.tensor(48)).intrinsics.height == 48
+    # the builders themselves, called directly, check too (2.5 frames failed deep inside torch)
+    from torchface.synth import scenarios
+
+    for build in (scenarios.pose_sweep, scenarios.expressions, scenarios.long_run):
+        with pytest.raises(TypeError, match="^num_frames must be an int, got float 2.5$"):
+            build(2.5, 64, 48)
+    with pytest.raises(TypeError, match="^height must be an int, got float 47.5$"):
+        scenarios.light_switch(3, 64, 47.5)
     with pytest.raises(ValueError, match="^keys must be finite"):
         keyframe_path(torch.tensor([[0.0], [float("nan")]]), 3)
     with pytest.raises(TypeError, match=r"^keys must be a \(n, D\) tensor, got list"):

@@ -190,6 +190,10 @@ def _camera(width: int, height: int) -> Intrinsics:
 
 
 def _check(num_frames: int, width: int, height: int) -> None:
+    """Refuse sizes a scenario cannot be built at: not ints (2.5 frames failed deep inside torch when a builder was
+    called directly, as :func:`make_scenario` checks), under one frame or under 8x8 pixels."""
+    for value, name in ((num_frames, "num_frames"), (width, "width"), (height, "height")):
+        check_int(value, name)
     if num_frames < 1 or width < 8 or height < 8:
         raise ValueError(f"need num_frames >= 1 and an image of at least 8x8, got {num_frames}, {width}x{height}")
 
