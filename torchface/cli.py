@@ -438,7 +438,7 @@ def _run_track(
     keep_going=False, keep_expression=False, fps=None,
 ) -> int:
     from torchface.geometry._checks import check_number
-    from torchface.job import InputSkipped, JobConfig, VideosStopped, track_videos
+    from torchface.job import InputSkipped, JobConfig, VideosStopped, _for_command_line, track_videos
     from torchface.template.management import TemplateConfig
     from torchface.tracker.lookahead import LookaheadConfig
     from torchface.tracker.smoothing import SmoothingConfig
@@ -466,7 +466,8 @@ def _run_track(
     reasons: tuple[str, ...] = ()
     try:
         try:
-            with _warnings_as_lines(display), warnings.catch_warnings():
+            # (the job's messages name this command's options: --resume, not JobConfig's resume=True)
+            with _for_command_line(), _warnings_as_lines(display), warnings.catch_warnings():
                 # (each skipped input's line, also where one of the same text was warned before in this process)
                 warnings.simplefilter("always", InputSkipped)
                 summaries = track_videos(videos, config, progress=display)

@@ -128,6 +128,7 @@ from __future__ import annotations
 
 import ast
 import contextlib
+import contextvars
 import hashlib
 import itertools
 import json
@@ -144,7 +145,7 @@ import unicodedata
 import warnings
 import weakref
 from collections import deque
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import MISSING, dataclass, field, fields, is_dataclass, replace
 from functools import lru_cache, partial
 from importlib import resources
@@ -215,6 +216,88 @@ BATCH_PIXELS: int = 128 * 640 * 480
 #: CSV's millisecond ``timestamp`` of two rows could coincide (and a container's rate is taken as none there,
 #: :class:`torchface.io.VideoInfo`'s ``fps_assumed``); OpenCV's mp4v writer cannot write the overlay at 0.001 or less.
 FPS_RANGE: str = "(0.001, 1000]"
+
+#: Whether the job runs for the command line (``torchface track``, which sets it: :func:`_for_command_line`): its
+#: messages then name the command's options (``--resume``, ``--out``), else, for a Python caller of
+#: :func:`track_videos`, the :class:`JobConfig` fields they are (:func:`_worded`).
+_COMMAND_LINE: contextvars.ContextVar[bool] = contextvars.ContextVar("torchface.job command line", default=False)
+
+#: How a message to a Python caller says what the command line's says with an option (:func:`_worded`), in order:
+#: what to do first (``run without --resume`` is ``run with resume=False``), then each option on its own as its
+#: :class:`JobConfig` field (``--out``: ``out_dir``; ``--smooth``: ``smoothing``; in a settings difference, ``--focal
+#: 300.0 then, 320.0 now``, its field's name). An option is a whole word (not one inside a path or a longer option,
+#: nor one of a ``torchface track`` command line quoted as such).
+_OPTION = r"(?<![\w/\\.-])(?<!torchface track )--{}(?![\w-])"
+_FLAGS = {"resume": "resume", "keep-going": "keep_going", "convert": "convert", "meshes": "meshes"}
+_FIELDS = {
+    **_FLAGS, "out": "out_dir", "detector": "detector", "landmarks": "landmarks", "model": "model", "fps": "fps",
+    "focal": "focal", "smooth": "smoothing", "lookahead": "lookahead", "keep-expression": "keep_expression",
+    "max-batch": "max_batch", "no-online-refine": "refine_first=None",
+    "motion-prediction": "TrackerConfig.motion_prediction",
+}  # fmt: skip
+_PYTHON_WORDS: tuple[tuple[re.Pattern[str], str], ...] = (
+    (re.compile(r"\brun the same command with " + _OPTION.format("resume")),
+     "call track_videos again with JobConfig(resume=True)"),
+    (re.compile(r"\brun the same command again\b"), "call track_videos again"),
+    (re.compile(r"\bpass " + _OPTION.format("convert")), "set JobConfig(convert=True)"),
+    *((re.compile(r"\bwithout " + _OPTION.format(option)), f"with {name}=False") for option, name in _FLAGS.items()),
+    (re.compile(r"\bwithout " + _OPTION.format("detector")), "with detector=None"),
+    *((re.compile(r"\bwith " + _OPTION.format(option)), f"with {name}=True") for option, name in _FLAGS.items()),
+    (re.compile(_OPTION.format("resume") + r"(?= skips)"), "resume=True"),
+    (re.compile(_OPTION.format("landmarks") + " FILE"), "landmarks=(FILE, ...)"),
+    (re.compile(_OPTION.format("detector") + " NAME"), "detector=NAME"),
+    (re.compile(_OPTION.format("fps") + r" (\S+) not used"), r"fps=\1 not used"),
+    *((re.compile(_OPTION.format(re.escape(option))), name) for option, name in _FIELDS.items()),
+)  # fmt: skip
+
+
+@contextlib.contextmanager
+def _for_command_line() -> Iterator[None]:
+    """Within it, :func:`track_videos` words its messages for the command line (:data:`_COMMAND_LINE`): what
+    ``torchface track`` runs it in."""
+    token = _COMMAND_LINE.set(True)
+    try:
+        yield
+    finally:
+        _COMMAND_LINE.reset(token)
+
+
+def _worded(message: str) -> str:
+    """``message`` (worded for the command line: ``run without --resume``) as the job's caller is told it: as it is
+    for the command line (:data:`_COMMAND_LINE`), else naming the :class:`JobConfig` fields that the options are
+    (``run with resume=False``; :data:`_PYTHON_WORDS`).
+
+    Example:
+        >>> _worded("cannot resume (--focal 300.0 then, 320.0 now): run with them, or without --resume")
+        'cannot resume (focal 300.0 then, 320.0 now): run with them, or with resume=False'
+    """
+    if _COMMAND_LINE.get():
+        return message
+    for pattern, words in _PYTHON_WORDS:
+        message = pattern.sub(words, message)
+    return message
+
+
+def _reword(exc: BaseException) -> None:
+    """Word the error ``exc`` that :func:`track_videos` raises for its caller (:func:`_worded`): the message of an
+    :class:`InputError`, :class:`OutputError` or ``DetectorUnavailable``, and an interruption's ``kept`` and
+    ``error``."""
+    if isinstance(exc, KeyboardInterrupt):
+        kept = getattr(exc, "kept", None)
+        if isinstance(kept, str):
+            exc.kept = _worded(kept)  # type: ignore[attr-defined]
+        error = getattr(exc, "error", None)
+        if isinstance(error, BaseException) and error is not exc:
+            _reword(error)
+        return
+    if not isinstance(exc, (InputError, OutputError, ImportError)) or len(exc.args) != 1:
+        return
+    if not isinstance(exc.args[0], str) or (said := _worded(exc.args[0])) == exc.args[0]:
+        return
+    exc.args = (said,)
+    if isinstance(exc, ImportError):  # (its str is its msg)
+        exc.msg = said
+
 
 #: Credit line of the embedded demo clip.
 DEMO_ATTRIBUTION: str = (
@@ -2440,7 +2523,7 @@ def _warn_skipped(path: Path, exc: BaseException, what: str = "skipped") -> str:
     """Warn (:class:`InputSkipped`, one line) that input ``path`` is ``what`` (skipped, or stopped partway) because of
     ``exc`` (an :class:`InputError`), as it is (``JobConfig.keep_going``); returns ``exc``'s message on one line (the
     :class:`VideoSummary`'s ``refused`` or ``stopped``)."""
-    message = " ".join(str(exc).split())
+    message = _worded(" ".join(str(exc).split()))  # (a Python caller's in JobConfig's words)
     said = message.removeprefix(f"{path}: ")  # (most name the input first: not twice)
     warnings.warn(f"{what} {path}: {said}", InputSkipped, stacklevel=2)
     return message
@@ -2485,9 +2568,9 @@ def _open_input(
     reader = open_frames(path, convert=config.convert, fps=config.fps)
     try:
         if config.fps is not None and not reader.info.fps_given:  # (its frames' times are the container's)
-            warnings.warn(f"{path}: --fps {config.fps:g} not used for it: the video gives its own frame rate, "
-                          f"{reader.info.fps:g} frames/s, which its timestamps and overlay follow", UserWarning,
-                          stacklevel=2)  # fmt: skip
+            warnings.warn(_worded(f"{path}: --fps {config.fps:g} not used for it: the video gives its own frame "
+                                  f"rate, {reader.info.fps:g} frames/s, which its timestamps and overlay follow"),
+                          UserWarning, stacklevel=2)  # fmt: skip
         frame = next(reader)
         lm = config.landmarks[k] if config.landmarks else None
         t0 = time.perf_counter()
@@ -2581,6 +2664,10 @@ def track_videos(
 ) -> list[VideoSummary]:
     """Track every video and write its outputs (see the module docstring).
 
+    Its messages (errors, warnings, the summaries' ``refused`` and ``stopped``, an interruption's ``kept``) name the
+    :class:`JobConfig` fields to set, ``call track_videos again with JobConfig(resume=True)``, ``run with
+    resume=False``, where ``torchface track``'s name its options, ``--resume`` (:func:`_worded`).
+
     Args:
         videos: input paths (video files, image folders or ``.npy`` arrays, :func:`torchface.io.open_frames`).
         config: :class:`JobConfig`.
@@ -2613,56 +2700,61 @@ def track_videos(
             where the step or its checkpoint failed meanwhile (a full disk), the interruption has that exception as
             its ``error`` attribute (the command line says it, then that it was interrupted).
     """
-    if isinstance(videos, (str, bytes, os.PathLike)):  # one path: its characters were taken as inputs
-        raise TypeError(f"videos must be a sequence of paths, e.g. [{str(videos)!r}] for one video")
-    videos = list(videos)
-    for k, v in enumerate(videos):  # (Path("") is ".": the current folder's images were tracked as a video)
-        if not isinstance(v, (str, os.PathLike)):
-            raise TypeError(f"videos[{k}] must be a path (a str or an os.PathLike), got {type(v).__name__}")
-        if os.fspath(v) == "":
-            raise InputError(f"videos[{k}] is an empty path (an unset variable?): give a video file, an image folder "
-                             "('.' for the current one) or a .npy array")  # fmt: skip
-    inputs = [Path(v) for v in videos]
-    if not inputs:
-        raise InputError("no input video given")
-    if config.landmarks and len(config.landmarks) != len(inputs):
-        raise InputError(f"give one landmarks file per video: {counted(len(inputs), 'video')}, "
-                         f"{counted(len(config.landmarks), 'file')}")
-    model = _job_model(config)  # (checked before the detector is loaded and any input opened)
-    detector = None
-    if config.detector is not None:
-        from torchface.detect import load_detector
-
-        detector = load_detector(config.detector)
-    elif not config.landmarks and model.num_landmarks != NUM_LANDMARKS:  # (a detector is refused for it)
-        raise InputError(f"no initialisation: give --landmarks FILE (the {model.num_landmarks} landmarks of the face "
-                         f"model {model.name!r}, of the first frame, in its order)")  # fmt: skip
-    elif not config.landmarks:
-        raise InputError(
-            "no initialisation: give --landmarks FILE (68 iBUG points of the first frame) or --detector NAME"
-        )
-    out_dir = Path(config.out_dir)
-    _check_out_dir(out_dir)
-    names = [output_name(v) for v in inputs]
-    _check_unique(inputs, names)
-    _check_name_lengths(out_dir, inputs, names)
-    _check_inputs_kept(inputs, names, config.landmarks, out_dir, config.meshes)
-    for v, name in zip(inputs, names):
-        for kind, path in output_paths(out_dir, name).items():
-            if kind != "meshes" and path.is_dir():
-                raise OutputError(f"{path}: an output of {v} would go there, but it is a folder")
-            if kind == "meshes" and config.meshes and path.exists() and not path.is_dir():
-                raise OutputError(f"{path}: the meshes of {v} would go in this folder, but it is a file")
-    locks = _take_locks(out_dir, names)  # (held until the run ends, also on an error or an interruption)
     try:
+        if isinstance(videos, (str, bytes, os.PathLike)):  # one path: its characters were taken as inputs
+            raise TypeError(f"videos must be a sequence of paths, e.g. [{str(videos)!r}] for one video")
+        videos = list(videos)
+        for k, v in enumerate(videos):  # (Path("") is ".": the current folder's images were tracked as a video)
+            if not isinstance(v, (str, os.PathLike)):
+                raise TypeError(f"videos[{k}] must be a path (a str or an os.PathLike), got {type(v).__name__}")
+            if os.fspath(v) == "":
+                raise InputError(f"videos[{k}] is an empty path (an unset variable?): give a video file, an image "
+                                 "folder ('.' for the current one) or a .npy array")  # fmt: skip
+        inputs = [Path(v) for v in videos]
+        if not inputs:
+            raise InputError("no input video given")
+        if config.landmarks and len(config.landmarks) != len(inputs):
+            raise InputError(f"give one landmarks file per video: {counted(len(inputs), 'video')}, "
+                             f"{counted(len(config.landmarks), 'file')}")
+        model = _job_model(config)  # (checked before the detector is loaded and any input opened)
+        detector = None
+        if config.detector is not None:
+            from torchface.detect import load_detector
+
+            detector = load_detector(config.detector)
+        elif not config.landmarks and model.num_landmarks != NUM_LANDMARKS:  # (a detector is refused for it)
+            raise InputError(f"no initialisation: give --landmarks FILE (the {model.num_landmarks} landmarks of the "
+                             f"face model {model.name!r}, of the first frame, in its order)")  # fmt: skip
+        elif not config.landmarks:
+            raise InputError(
+                "no initialisation: give --landmarks FILE (68 iBUG points of the first frame) or --detector NAME"
+            )
+        out_dir = Path(config.out_dir)
+        _check_out_dir(out_dir)
+        names = [output_name(v) for v in inputs]
+        _check_unique(inputs, names)
+        _check_name_lengths(out_dir, inputs, names)
+        _check_inputs_kept(inputs, names, config.landmarks, out_dir, config.meshes)
+        for v, name in zip(inputs, names):
+            for kind, path in output_paths(out_dir, name).items():
+                if kind != "meshes" and path.is_dir():
+                    raise OutputError(f"{path}: an output of {v} would go there, but it is a folder")
+                if kind == "meshes" and config.meshes and path.exists() and not path.is_dir():
+                    raise OutputError(f"{path}: the meshes of {v} would go in this folder, but it is a file")
+        locks = _take_locks(out_dir, names)  # (held until the run ends, also on an error or an interruption)
         try:
-            if model.device != torch.device(config.device):  # (a copy: the same object on its device, digested once)
-                model = model.to(device=torch.device(config.device))
-            return _track_locked(inputs, names, config, detector, model, out_dir, progress)
-        finally:
-            _release_locks(locks)
-    except KeyboardInterrupt as exc:  # (its writers stopped: what they leave is on disk)
-        _say_kept(exc, _kept_outputs(out_dir, names))
+            try:
+                # (a copy: the same object on its device, digested once)
+                if model.device != torch.device(config.device):
+                    model = model.to(device=torch.device(config.device))
+                return _track_locked(inputs, names, config, detector, model, out_dir, progress)
+            finally:
+                _release_locks(locks)
+        except KeyboardInterrupt as exc:  # (its writers stopped: what they leave is on disk)
+            _say_kept(exc, _kept_outputs(out_dir, names))
+            raise
+    except BaseException as exc:  # (a Python caller's in JobConfig's words, the command line's as they are)
+        _reword(exc)
         raise
 
 
@@ -2981,11 +3073,11 @@ def _check_retracked(s: _Stream, new: np.ndarray, old: np.ndarray, columns: tupl
     status = "" if first_other is None else f"; another status or success from frame {first_other} on"
     were = plural(s.not_met_again, "was", "were")
     warnings.warn(
-        f"{s.reader.info.path}: {s.not_met_again} of its {counted(n, 'row')} written before the interruption, "
-        f"tracked again from its first frame for the online start, {were} not met again: up to {big_mm:.3g} mm "
-        f"(frame {at}), {big_deg:.3g} degrees and {big_conf:.3g} of confidence off the CSV's{status}; the CSV keeps "
-        "its rows and the next ones go on from the frames tracked again (track the video without --resume for rows of "
-        "one run)",
+        _worded(f"{s.reader.info.path}: {s.not_met_again} of its {counted(n, 'row')} written before the interruption, "
+                f"tracked again from its first frame for the online start, {were} not met again: up to {big_mm:.3g} mm "
+                f"(frame {at}), {big_deg:.3g} degrees and {big_conf:.3g} of confidence off the CSV's{status}; the CSV "
+                "keeps its rows and the next ones go on from the frames tracked again (track the video without "
+                "--resume for rows of one run)"),
         RuntimeWarning, stacklevel=2,
     )  # fmt: skip
 
@@ -3557,9 +3649,9 @@ def _warn_replaced_inputs(out_dir: Path, videos: Sequence[tuple[str, Path]]) -> 
         except (OSError, ValueError, KeyError, TypeError):
             continue
         if isinstance(made_from, str) and Path(made_from) != video.resolve():
-            warnings.warn(f"{path}: replacing the outputs made from {made_from} with those of {video}, of the same "
-                          "name: give each its own --out (or rename one) to keep both", RuntimeWarning,
-                          stacklevel=3)  # fmt: skip
+            warnings.warn(_worded(f"{path}: replacing the outputs made from {made_from} with those of {video}, of "
+                                  "the same name: give each its own --out (or rename one) to keep both"),
+                          RuntimeWarning, stacklevel=3)  # fmt: skip
 
 
 def _clear_earlier_outputs(out_dir: Path, names: Sequence[str]) -> None:

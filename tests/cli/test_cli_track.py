@@ -1592,7 +1592,7 @@ def test_no_face_in_any_frame_is_one_line_saying_what_to_do(clip, tmp_path, monk
     _assert_clean_failure(rc, capsys, tmp_path / "o", f"the none detector found no face in any of its {T} frames")
     assert len(calls) == T
     reports = []
-    with pytest.raises(InputError, match="--landmarks FILE if it shows one"):
+    with pytest.raises(InputError, match=r"landmarks=\(FILE, \.\.\.\) if it shows one"):
         track_videos([video], JobConfig(out_dir=tmp_path / "o", detector="none"), progress=reports.append)
     assert [(p.done, p.searching) for p in reports] == [(k, True) for k in range(1, T + 1)]
 
@@ -3895,7 +3895,7 @@ def test_resuming_rows_timed_by_frame_over_fps_of_a_variable_frame_rate_video_is
     clock[:] = [k * 40.0 + (10.0 if k >= differ_at else 0.0) for k in range(T + n)]  # frame k 10 ms later
     with pytest.raises(InputError, match=rf"late\.csv\.partial: cannot resume, its row of frame {differ_at} says "
                                          rf"timestamp {differ_at * 0.04:.3f} s, but that frame of .* is at "
-                                         rf"{differ_at * 0.04 + 0.01:.3f} s .*run without --resume"):  # fmt: skip
+                                         rf"{differ_at * 0.04 + 0.01:.3f} s .*run with resume=False"):  # fmt: skip
         track_videos([late], replace(config, resume=True))
     assert partial.read_bytes() == kept
     assert not list((tmp_path / "a").glob("*.mp4"))

@@ -105,8 +105,8 @@ def test_a_partial_run_is_not_resumed_with_another_model(clip, tmp_path):
         track_videos([video], other, progress=interrupt)
     partial = tmp_path / f"{NAME}.csv.partial"
     kept = partial.read_bytes()
-    with pytest.raises(InputError, match=r"another face model \(--model CANDIDE-3, 6 AUVs, 26 landmarks \(sha256 "
-                                         r"[0-9a-f]{16}\) then, CANDIDE-3 \(no --model\) now\)"):  # fmt: skip
+    with pytest.raises(InputError, match=r"another face model \(model CANDIDE-3, 6 AUVs, 26 landmarks \(sha256 "
+                                         r"[0-9a-f]{16}\) then, CANDIDE-3 \(no model\) now\)"):  # fmt: skip
         track_videos([video], JobConfig(tmp_path, landmarks=(root / "lm68.csv",), resume=True))
     assert partial.read_bytes() == kept
     track_videos([video], replace(other, resume=True))
@@ -114,7 +114,7 @@ def test_a_partial_run_is_not_resumed_with_another_model(clip, tmp_path):
     out = tmp_path / "second"  # made with CANDIDE-3, resumed with the other model
     with pytest.raises(KeyboardInterrupt):
         track_videos([video], JobConfig(out, landmarks=(root / "lm68.csv",)), progress=interrupt)
-    with pytest.raises(InputError, match=r"another face model \(--model CANDIDE-3 \(no --model\) then, CANDIDE-3, 6"):
+    with pytest.raises(InputError, match=r"another face model \(model CANDIDE-3 \(no model\) then, CANDIDE-3, 6"):
         track_videos([video], replace(other, out_dir=out, resume=True))
 
 
@@ -124,8 +124,9 @@ def test_what_a_model_cannot_track_is_refused_before_anything_is_written(clip, t
     with pytest.raises(InputError, match="has 26 landmarks, and the dlib detector gives the 68 iBUG points"):
         track_videos([video], JobConfig(out, detector="dlib", model=root / "other.npz"))  # (dlib need not be there)
     # (neither landmarks nor a detector: it said "give --landmarks FILE (68 iBUG points ...) or --detector NAME")
-    said = r"give --landmarks FILE \(the 26 landmarks of the face model 'CANDIDE-3, 6 AUVs, 26 landmarks', of the first"
-    with pytest.raises(InputError, match=said + r" frame, in its order\)$"):
+    # (the command line's "give --landmarks FILE ...": from Python, the JobConfig field)
+    said = r"give landmarks=\(FILE, \.\.\.\) \(the 26 landmarks of the face model 'CANDIDE-3, 6 AUVs, 26 landmarks', "
+    with pytest.raises(InputError, match=said + r"of the first frame, in its order\)$"):
         track_videos([video], JobConfig(out, model=root / "other.npz"))
     with pytest.raises(InputError, match=r"lm68.csv: expected 26 landmarks \(the face model's\), got 68"):
         track_videos([video], JobConfig(out, landmarks=(root / "lm68.csv",), model=root / "other.npz"))
