@@ -623,7 +623,11 @@ def test_a_spec_whose_tensors_require_grad_is_written_whole(tmp_path):
     on Tensor that requires grad") and write_sequence left the video without its ground truth."""
     from dataclasses import replace
 
+    import warnings
+
     spec = make_scenario("pose_sweep", 2, 32, 24)
-    files = write_sequence(replace(spec, rotation=spec.rotation.clone().requires_grad_()), tmp_path)
+    with warnings.catch_warnings():  # (nor torch's "Converting a tensor with requires_grad=True to a scalar")
+        warnings.filterwarnings("error", message=".*requires_grad")
+        files = write_sequence(replace(spec, rotation=spec.rotation.clone().requires_grad_()), tmp_path)
     torch.testing.assert_close(load_ground_truth(files.video).rotation, spec.rotation, rtol=0, atol=0)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["pose_sweep.avi", "pose_sweep.gt.json", "pose_sweep.gt.npz"]

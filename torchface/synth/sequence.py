@@ -643,8 +643,8 @@ def _metadata(gt: GroundTruth) -> dict[str, object]:
         "shape_coeffs": [round(float(x), 6) for x in gt.shape_coeffs],
         "num_lights": int(gt.light_directions.shape[1]),
         "events": [[label, int(frame)] for label, frame in gt.events],
-        "ypr_deg_min": [round(float(x), 3) for x in gt.ypr_deg.amin(0)],
-        "ypr_deg_max": [round(float(x), 3) for x in gt.ypr_deg.amax(0)],
+        "ypr_deg_min": [round(float(x), 3) for x in gt.ypr_deg.detach().amin(0)],
+        "ypr_deg_max": [round(float(x), 3) for x in gt.ypr_deg.detach().amax(0)],
         "occluder_frames": int(on.sum()),
         "face_not_visible_frames": int((~gt.face_visible).sum()),
         "occluded_fraction_range": (
