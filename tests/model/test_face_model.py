@@ -283,3 +283,38 @@ def test_each_stream_deforms_as_it_does_alone_whatever_the_layout(layout, size):
             differ += not torch.equal(full[b : b + 1], deform_vertices(mean, su, au, None, x[b : b + 1].contiguous()))
     assert (rows, differ) == (36, 0)
     assert deform_vertices(mean, su, au, None, torch.zeros(0, A)).shape == (0, V, 3)
+
+
+def test_the_padded_basis_is_kept_while_the_basis_is_unchanged():
+    """``deform_vertices`` pads the basis to aligned rows (``_rowwise_product``); the padded copy, made at every call
+    (about 1 ms on the ICT Face Model's basis), is kept while the basis is unchanged. A basis changed in place is
+    padded again; one that requires grad, or a call in inference mode, keeps nothing (a gradient reaches the basis,
+    and an inference tensor kept would refuse a later call's backward)."""
+    from torchface.model import face_model as fm
+
+    g = torch.Generator().manual_seed(3)
+    mean, su = torch.randn(37, 3, generator=g), torch.zeros(0, 37, 3)
+    au, x = torch.randn(5, 37, 3, generator=g), torch.rand(3, 5, generator=g)
+    fm._PADDED.clear()
+    first = deform_vertices(mean, su, au, None, x)
+    kept = [entry[2] for entry in fm._PADDED.values()]
+    assert len(kept) == 1 and kept[0].shape == (5, 112)  # (111 columns padded to 112)
+    torch.testing.assert_close(first, mean + torch.einsum("ba,avc->bvc", x, au), rtol=1e-6, atol=1e-6)
+    assert torch.equal(deform_vertices(mean, su, au, None, x), first)
+    assert [entry[2] for entry in fm._PADDED.values()][0] is kept[0]  # (the same padded tensor)
+    au.mul_(2.0)  # (in place: the version counter moves, the padded basis is made again)
+    torch.testing.assert_close(deform_vertices(mean, su, au, None, x) - mean, 2 * (first - mean), rtol=1e-6, atol=1e-6)
+    fm._PADDED.clear()
+    with torch.inference_mode():
+        deform_vertices(mean, su, au, None, x)
+    assert not fm._PADDED
+    alpha = x[:1].clone().requires_grad_()
+    deform_vertices(mean, su, au, None, alpha).sum().backward()  # (no inference tensor kept to refuse it)
+    assert alpha.grad is not None and torch.isfinite(alpha.grad).all()
+    learnt = au.clone().requires_grad_()
+    deform_vertices(mean, su, learnt, None, x).sum().backward()
+    torch.testing.assert_close(learnt.grad, x.sum(0)[:, None, None].expand(5, 37, 3))
+    assert all(not entry[2].requires_grad for entry in fm._PADDED.values())
+    for _ in range(fm._PADDED_KEPT + 3):  # (at most _PADDED_KEPT bases kept)
+        deform_vertices(mean, su, torch.randn(5, 37, 3, generator=g), None, x)
+    assert len(fm._PADDED) == fm._PADDED_KEPT

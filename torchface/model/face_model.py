@@ -11,13 +11,15 @@ Shapes: ``B`` batch, ``V`` vertices, ``F`` triangles, ``S`` shape units, ``A`` a
 
 from __future__ import annotations
 
-from collections import Counter
+import threading
+from collections import Counter, OrderedDict
 from dataclasses import dataclass, fields
 from typing import Any
 
 import torch
 from torch import Tensor
 
+from torchface._compiling import is_compiling, is_transformed
 from torchface._device import check_to_arguments
 from torchface.geometry.mesh import face_normals, vertex_normals
 
@@ -55,6 +57,39 @@ def _check_coeffs(coeffs: Tensor | None, count: int, what: str, units: Tensor) -
 #: alignment, so that each output row is aligned as a batch of one's is.
 _ROW_ALIGN = 16
 
+#: The padded bases :func:`_padded_basis` made last (at most :data:`_PADDED_KEPT`), each with the basis it was made
+#: from, held so that its memory is not another tensor's while the entry is kept, and that basis's version counter.
+_PADDED: OrderedDict[tuple[object, ...], tuple[Tensor, int, Tensor]] = OrderedDict()
+_PADDED_KEPT = 4
+_PADDED_LOCK = threading.Lock()
+
+
+def _padded_basis(basis: Tensor) -> Tensor:
+    """``(K, D)`` ``basis`` with zero columns to a multiple of :data:`_ROW_ALIGN` (:func:`_rowwise_product`), the
+    same padded tensor again while ``basis`` is unchanged (its memory and version counter): a model's basis is
+    padded once, not at every call (the copy took about 1 ms a call on the ICT Face Model's 29538 columns and 6
+    microseconds on CANDIDE-3's 339). Made afresh, not kept, where a gradient or a transform may flow through it
+    (``basis`` requires grad, ``torch.compile`` traces, a ``torch.func`` transform or forward-mode AD wraps it) or in
+    inference mode (an inference tensor kept would refuse a later call's backward)."""
+    pad = -basis.shape[1] % _ROW_ALIGN
+    if not pad:
+        return basis
+    if basis.requires_grad or torch.is_inference_mode_enabled() or is_compiling() or is_transformed(basis):
+        return torch.nn.functional.pad(basis, (0, pad))
+    key = (basis.data_ptr(), basis.storage_offset(), tuple(basis.shape), basis.stride(), basis.dtype, basis.device)
+    with _PADDED_LOCK:
+        kept = _PADDED.get(key)
+        if kept is not None and kept[1] == basis._version:
+            _PADDED.move_to_end(key)
+            return kept[2]
+    padded = torch.nn.functional.pad(basis, (0, pad))
+    with _PADDED_LOCK:
+        _PADDED[key] = (basis, basis._version, padded)
+        _PADDED.move_to_end(key)
+        while len(_PADDED) > _PADDED_KEPT:
+            _PADDED.popitem(last=False)
+    return padded
+
 
 def _rowwise_product(coeffs: Tensor, basis: Tensor) -> Tensor:
     """``(B, K) @ (K, D)`` -> ``(B, D)``, each row computed as a ``(1, K) @ (K, D)`` product of its own.
@@ -68,8 +103,8 @@ def _rowwise_product(coeffs: Tensor, basis: Tensor) -> Tensor:
     transposed) went to ``bmm`` as they were, which computed most rows otherwise than alone.
 
     The basis is padded with zero columns to a multiple of :data:`_ROW_ALIGN` elements, so that every row of the
-    product starts on a 64-byte boundary (the allocator's), and the padding is sliced off (the copy costs about 6
-    microseconds on CANDIDE-3). A kernel may take another path for an output row that is not so aligned: on an AMD
+    product starts on a 64-byte boundary (the allocator's), and the padding is sliced off (the padded basis is kept
+    while the basis is unchanged: :func:`_padded_basis`). A kernel may take another path for an output row that is not so aligned: on an AMD
     EPYC (AVX-512, MKL 2024.2) the rows at an odd multiple of 8 bytes were computed otherwise than alone
     (CANDIDE-3's 339 columns: 119 of 195 rows for B = 1 to 8, 31 and 128; the ICT Face Model's: 82).
 
@@ -83,9 +118,7 @@ def _rowwise_product(coeffs: Tensor, basis: Tensor) -> Tensor:
     num_b, num_d = coeffs.shape[0], basis.shape[1]
     if num_b == 1:  # (the batched kernel's rounding, the row's as in any batch: see above)
         coeffs = coeffs.expand(2, -1).contiguous()
-    pad = -num_d % _ROW_ALIGN
-    if pad:
-        basis = torch.nn.functional.pad(basis, (0, pad))
+    basis = _padded_basis(basis)
     out = torch.bmm(coeffs.unsqueeze(1), basis.unsqueeze(0).expand(coeffs.shape[0], -1, -1)).squeeze(1)
     return out[:num_b, :num_d]
 
