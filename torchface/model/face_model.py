@@ -104,9 +104,10 @@ def _rowwise_product(coeffs: Tensor, basis: Tensor) -> Tensor:
 
     The basis is padded with zero columns to a multiple of :data:`_ROW_ALIGN` elements, so that every row of the
     product starts on a 64-byte boundary (the allocator's), and the padding is sliced off (the padded basis is kept
-    while the basis is unchanged: :func:`_padded_basis`). A kernel may take another path for an output row that is not so aligned: on an AMD
-    EPYC (AVX-512, MKL 2024.2) the rows at an odd multiple of 8 bytes were computed otherwise than alone
-    (CANDIDE-3's 339 columns: 119 of 195 rows for B = 1 to 8, 31 and 128; the ICT Face Model's: 82).
+    while the basis is unchanged: :func:`_padded_basis`). A kernel may take another path for an output row that is
+    not so aligned: on an AMD EPYC (AVX-512, MKL 2024.2) the rows at an odd multiple of 8 bytes were computed
+    otherwise than alone (CANDIDE-3's 339 columns: 119 of 195 rows for B = 1 to 8, 31 and 128; the ICT Face Model's:
+    82).
 
     A single row (``B = 1``) is computed as the first of a batch of two (the row twice): ``bmm`` of one matrix is a
     plain matrix product, and on an Intel Xeon with AVX-512 FP16 (MKL 2024.2; session 65) that product rounded
