@@ -749,13 +749,8 @@ def test_resume_refuses_to_skip_complete_outputs_made_from_the_input_before_it_c
     neither). Now the sidecar's ``input.identity`` is compared, and a changed input refused (with --keep-going,
     skipped) saying what to do; the same file untouched is skipped as complete, and a sidecar without it (an earlier
     version's) is not compared."""
-    video, lm, _ = clip
-    short = _short_npy(video, tmp_path / "short.npy", 2)
-    out = tmp_path / "out"
-
-    def run(*extra):
-        return main(["track", str(short), "--out", str(out), "--landmarks", str(lm), "--quiet", "--no-online-refine",
-                     *extra])  # fmt: skip
+    video = clip[0]
+    short, out, run = _short_run(clip, tmp_path)
 
     assert run() == 0
     sidecar_path = output_paths(out, "short")["json"]
@@ -781,13 +776,7 @@ def test_resume_refuses_to_skip_complete_outputs_made_without_the_meshes_asked_f
     """``--resume --meshes`` over a video completed without --meshes skipped it as complete: no meshes, no word
     (the summary's file list only leaves out "_meshes/"). Now refused, as other settings are; with its meshes there
     it is skipped, and without --meshes too."""
-    video, lm, _ = clip
-    short = _short_npy(video, tmp_path / "short.npy", 2)
-    out = tmp_path / "out"
-
-    def run(*extra):
-        return main(["track", str(short), "--out", str(out), "--landmarks", str(lm), "--quiet", "--no-online-refine",
-                     *extra])  # fmt: skip
+    _, out, run = _short_run(clip, tmp_path)
 
     assert run() == 0
     _assert_clean_failure(run("--resume", "--meshes"), capsys, tmp_path / "nothing",
@@ -2369,6 +2358,19 @@ def _short_npy(video, path, n):
     frames = read_video(video, max_frames=n)
     np.save(path, (frames.permute(0, 2, 3, 1).numpy() * 255).round().astype(np.uint8))
     return path
+
+
+def _short_run(clip, tmp_path):
+    """A 2-frame ``short.npy`` of ``clip``, its ``--out`` folder and ``run(*extra)``: ``torchface track`` of it
+    (quiet, no online start) with ``extra`` options, returning the exit status."""
+    video, lm, _ = clip
+    short, out = _short_npy(video, tmp_path / "short.npy", 2), tmp_path / "out"
+
+    def run(*extra):
+        return main(["track", str(short), "--out", str(out), "--landmarks", str(lm), "--quiet", "--no-online-refine",
+                     *extra])  # fmt: skip
+
+    return short, out, run
 
 
 def _interrupted(path, out, lm, stop_at, **kwargs):
