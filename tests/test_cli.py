@@ -241,6 +241,15 @@ def test_a_ctrl_c_stops_a_shell_loop_over_videos(tmp_path):
     alone = subprocess.run([sys.executable, "-c", code, "demo", "--out", str(tmp_path / "alone")], cwd=root,
                            capture_output=True, text=True, timeout=120, start_new_session=True)  # fmt: skip
     assert alone.returncode == -signal.SIGINT, (alone.returncode, alone.stderr[-2000:])
+    # the atexit functions run before the end by SIGINT, as Python runs them before its own (the signal's default
+    # action ran none: a multiprocessing finalizer, a private native-kernel folder's removal were skipped)
+    mark = tmp_path / "atexit ran"
+    exiting = code.replace("sys.exit(main())\n", f"import atexit; atexit.register(open, {str(mark)!r}, 'w')\n"
+                                                  "sys.exit(main())\n")  # fmt: skip
+    assert exiting != code
+    ended = subprocess.run([sys.executable, "-c", exiting, "demo", "--out", str(tmp_path / "exit")], cwd=root,
+                           capture_output=True, text=True, timeout=120, start_new_session=True)  # fmt: skip
+    assert ended.returncode == -signal.SIGINT and mark.is_file(), (ended.returncode, ended.stderr[-2000:])
 
 
 def test_an_empty_path_is_a_usage_error_not_the_current_folder(tmp_path, capsys, monkeypatch):

@@ -32,6 +32,7 @@ line ``torchface: warning: ...`` each, above the progress bars.
 from __future__ import annotations
 
 import argparse
+import atexit
 import contextlib
 import math
 import os
@@ -694,9 +695,17 @@ def _end_by_sigint() -> None:
     ...; done``) and gets the Ctrl-C with it stops the loop only where the command died of SIGINT (bash's "wait and
     cooperative exit"); one that exits with 130 itself is taken for a program that handled the Ctrl-C, and the loop
     went on to the next video. Its status as a shell reports it stays 130 (128 + SIGINT; Python's ``subprocess``:
-    -2). Not on Windows (no such signal death: its status stays 130)."""
+    -2). Not on Windows (no such signal death: its status stays 130).
+
+    The ``atexit`` functions run first, as Python runs them before it ends that way (the multiprocessing
+    finalizers, a private native-kernel folder's removal, the MediaPipe detector's close: the signal's default
+    action ran none of them); a second Ctrl-C or an error among them does not keep the process from ending so."""
     if os.name != "posix":
         return
+    try:
+        atexit._run_exitfuncs()  # (each runs once: the process ends below, before the interpreter would run them)
+    except BaseException:  # noqa: BLE001 (a second Ctrl-C among them: the process still ends by SIGINT)
+        pass
     for stream in (sys.stdout, sys.stderr):
         with contextlib.suppress(OSError, ValueError, AttributeError):
             stream.flush()
