@@ -163,7 +163,7 @@ from torchface._paths import check_no_tilde
 from torchface._words import counted, plural
 from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS
 from torchface.detect import _Batched, _uint8_planes, accepts_near, detector_image, search_first_face, usable_detection
-from torchface.geometry._checks import check_bool, check_int, check_number
+from torchface.geometry._checks import check_bool, check_int, check_number, rotation_defects
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.so3 import axis_angle_to_matrix, matrix_to_axis_angle
 from torchface.io.errors import InputError, OutputError, dangling_link
@@ -1294,8 +1294,8 @@ def _params_from_rows(rows: np.ndarray, columns: tuple[str, ...], layout: ParamL
 def _not_rotations(R: np.ndarray) -> np.ndarray:
     """``(N,)`` bool: which of ``R (N, 3, 3)`` are not rotations (orthonormal to 1e-4, the 9 significant digits a
     file holds being about 1e-8 and float32's rounding about 1e-7; determinant > 0)."""
-    off = np.abs(R @ R.transpose(0, 2, 1) - np.eye(3)).max(axis=(1, 2), initial=0.0)
-    return (off > 1e-4) | (np.linalg.det(R) <= 0)
+    off, det = rotation_defects(R)
+    return (off > 1e-4) | (det <= 0)
 
 
 def _replay_problem(rows: np.ndarray, columns: tuple[str, ...], first: int = 0) -> str | None:
@@ -2884,10 +2884,10 @@ def _track_opened(
     batch by batch."""
     try:
         if not config.resume:  # a fresh run (the inputs keep_going skipped too: every complete output is this run's)
-            _warn_replaced_inputs(out_dir, [(s.name, Path(s.reader.info.path)) for s in streams]
-                                  + [(x.name, x.input) for x in summaries.values() if x.refused])  # fmt: skip
-            _clear_earlier_outputs(out_dir, [s.name for s in streams] + [x.name for x in summaries.values()
-                                                                         if x.refused])  # fmt: skip
+            earlier = [(s.name, Path(s.reader.info.path)) for s in streams]
+            earlier += [(x.name, x.input) for x in summaries.values() if x.refused]
+            _warn_replaced_inputs(out_dir, earlier)
+            _clear_earlier_outputs(out_dir, [name for name, _ in earlier])
         # One batch: videos of one frame size and one pyramid (pyramid_for_faces of each video's own face, so that a
         # video's results do not depend on the others'), as many as max_batch and BATCH_PIXELS allow.
         if config.resume:  # (a video resumed from its checkpoint is tracked with its batch's others again)

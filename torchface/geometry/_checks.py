@@ -316,6 +316,13 @@ def check_reals(values: object, name: str, interval: str | None = None) -> tuple
     return tuple(check_number(v, f"{name}[{i}]", interval) for i, v in enumerate(values))
 
 
+def rotation_defects(R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """How far each of ``R`` ``(N, 3, 3)`` is from a rotation: ``(N,)`` the largest entry of ``|R R^T - I|`` and
+    ``(N,)`` its determinant (a rotation: 0 and +1; each caller bounds the first by its own tolerance)."""
+    off = np.abs(R @ R.transpose(0, 2, 1) - np.eye(3)).max(axis=(1, 2), initial=0.0)
+    return off, np.linalg.det(R)
+
+
 def check_exact_dim(x: torch.Tensor, name: str, dims: tuple[int, ...], shape_doc: str) -> None:
     """Raise ``ValueError`` unless ``x.dim()`` is one of ``dims`` (``shape_doc`` names the expected shapes)."""
     if x.dim() not in dims:

@@ -37,7 +37,7 @@ import torch
 from torch import Tensor
 
 from torchface._atomic import folder_locked, remove_dead_partials, written_whole
-from torchface.geometry._checks import check_int, check_number
+from torchface.geometry._checks import check_int, check_number, rotation_defects
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.projection import project_points
 from torchface.geometry.so3 import matrix_to_axis_angle, matrix_to_euler
@@ -89,12 +89,10 @@ def _check_spec_tensor(x: object, name: str) -> None:
 def _check_rotations(R: Tensor) -> None:
     """Refuse ``(T, 3, 3)`` matrices that are not rotations (a scale, a shear, a reflection: they rendered a scaled or
     mirrored head, and its ground truth ``ypr_deg`` and ``axis_angle`` of no rotation at all)."""
-    R64 = R.detach().to(torch.float64)
-    off = (R64.transpose(-1, -2) @ R64 - torch.eye(3, dtype=torch.float64)).abs().amax(dim=(-2, -1))
-    det = torch.linalg.det(R64)
-    bad = (off > ROTATION_TOLERANCE) | (det <= 0)
-    if bool(bad.any()):
-        k = int(bad.nonzero()[0])
+    off, det = rotation_defects(R.detach().to(torch.float64).numpy())  # (on the CPU: _check_spec_tensor)
+    bad = np.flatnonzero((off > ROTATION_TOLERANCE) | (det <= 0))
+    if bad.size:
+        k = int(bad[0])
         raise ValueError(
             f"rotation must hold rotation matrices (R^T R = I, det R = +1), frame {k}'s is off by {float(off[k]):.3g} "
             f"with det {float(det[k]):.4g}; make them with torchface.geometry.so3.euler_to_matrix(ypr_deg) or "
