@@ -586,6 +586,28 @@ def test_a_nan_pose_counts_as_lost() -> None:
     assert m.lost_frames == 1 and math.isnan(m.rot_err_max_deg)
 
 
+def test_matrices_that_are_not_rotations_are_refused_naming_the_frame() -> None:
+    """A scaled, sheared or mirrored matrix is refused with its index (it was scored as the angle of no rotation: a
+    yaw of 20 degrees scaled by 2 read 0 degrees off a 20-degree truth), while rows with NaN stay lost poses and a
+    float32 tracker's or a float16 rotation's rounding passes."""
+    gt = euler_to_matrix(torch.tensor([[0.0, 0, 0], [20.0, 0, 0], [40.0, 10, 0]], dtype=F64))
+    for bad, what in ((gt[1] * 2.0, "scaled"), (gt[1] @ torch.diag(torch.tensor([1.0, 1, -1], dtype=F64)), "mirror"),
+                      (gt[1] + 0.01 * torch.ones(3, 3, dtype=F64), "sheared")):  # fmt: skip
+        est = gt.clone()
+        est[1] = bad
+        with pytest.raises(ValueError, match=r"R_est must hold rotation matrices .*R_est\[1\]"):
+            relative_rotation_error_deg(est, gt)
+        with pytest.raises(ValueError, match=r"rotation_gt must hold rotation matrices .*rotation_gt\[1\]"):
+            sequence_metrics(gt, torch.zeros(3, 3), est, torch.zeros(3, 3), torch.zeros(3, dtype=torch.int64))
+        with pytest.raises(ValueError, match=r"R_gt must hold .*R_gt\[1, 1\]"):  # (a batch: its full index)
+            rotation_jitter_deg(gt.expand(2, 3, 3, 3), torch.stack([gt, est]))
+    nan = gt.clone()
+    nan[2] = float("nan")
+    assert torch.isnan(relative_rotation_error_deg(nan, gt)[2])
+    for dtype in (torch.float32, torch.float16, torch.bfloat16):
+        relative_rotations(gt.to(dtype))
+
+
 def test_the_worst_seed_of_a_seed_table_is_nan_when_a_seed_broke() -> None:
     """``evaluate.seed_table``'s "worst over N seeds" line: Python's ``max`` skipped a NaN after the first value
     (seeds 0.2 and NaN printed "worst ... rot mean 0.20")."""

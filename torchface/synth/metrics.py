@@ -17,11 +17,13 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass
 
+import numpy as np
 import torch
 from torch import Tensor
 
-from torchface.geometry._checks import check_number
+from torchface.geometry._checks import check_number, rotation_defects
 from torchface.geometry.so3 import geodesic_angle_deg, matrix_to_axis_angle, matrix_to_euler
+from torchface.synth.sequence import ROTATION_TOLERANCE
 from torchface.tracker.step import TrackStatus, usable_status
 
 __all__ = [
@@ -57,6 +59,21 @@ def _check_rotations(R: Tensor, name: str) -> None:
         raise TypeError(f"{name} must be a torch.Tensor, got {type(R).__name__}")
     if R.dim() < 3 or tuple(R.shape[-2:]) != (3, 3) or not R.is_floating_point():
         raise ValueError(f"{name} must be (*, T, 3, 3) float rotations, got {tuple(R.shape)} {R.dtype}")
+    # (a scale, a shear or a reflection was scored as an angle of no rotation at all; rows with NaN or inf are left
+    # to the callers, which count such a pose as lost)
+    flat = R.detach().reshape(-1, 3, 3).to("cpu", torch.float64).numpy()
+    finite = np.flatnonzero(np.isfinite(flat).all(axis=(1, 2)))
+    off, det = rotation_defects(flat[finite])
+    tol = max(ROTATION_TOLERANCE, 8.0 * torch.finfo(R.dtype).eps)  # (a sequence's; float16's, bfloat16's rounding)
+    bad = np.flatnonzero((off > tol) | (det <= 0))
+    if bad.size:
+        k = int(finite[bad[0]])
+        where = tuple(int(i) for i in np.unravel_index(k, R.shape[:-2]))
+        raise ValueError(
+            f"{name} must hold rotation matrices (R^T R = I, det R = +1); {name}[{', '.join(map(str, where))}] is off "
+            f"by {float(off[bad[0]]):.3g} with det {float(det[bad[0]]):.4g}; make them with "
+            "torchface.geometry.so3.euler_to_matrix(ypr_deg) or axis_angle_to_matrix"
+        )
 
 
 def _check_same(a: Tensor, b: Tensor, names: str) -> None:
