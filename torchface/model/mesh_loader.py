@@ -307,8 +307,9 @@ def load_mesh_model(
             one string (a sequence of names is expected), ``facs_links`` is not a dict or a value of it is neither
             an AU name nor a collection of them, ``scale_to_mm`` is not a number, or ``landmark_vertices`` are not
             integers.
-        ValueError: a basis, name list, landmark index or range has the wrong size, a basis entry is a whole mesh
-            (close to the mesh itself) rather than a displacement, ``landmark_vertices`` is not 1-D (2-D with
+        ValueError: a vertex of the mesh is not finite (NaN or inf; a basis's are refused as :class:`FaceModel`
+            refuses them), a basis, name list, landmark index or range has the wrong size, a basis entry is a whole
+            mesh (close to the mesh itself) rather than a displacement, ``landmark_vertices`` is not 1-D (2-D with
             ``landmark_weights`` of its shape, at most 3 columns) or holds fractions, ``landmark_weights`` are not
             finite, one is negative or a row does not sum to one (each within 1e-2), the file holds no triangles,
             they are not wound consistently or
@@ -353,6 +354,11 @@ def load_mesh_model(
         else:
             raise ValueError(f"{default_name}: trimesh read {n} of the file's {obj_vertices.shape[0]} vertices, not "
                              "in the file's order: the model's vertices would not be the file's")  # fmt: skip
+    bad = np.flatnonzero(~np.isfinite(vertices).all(axis=1))
+    if bad.size:  # (an inf was "fx must be a finite number, got nan" from the winding check's view; a NaN warned
+        # that the mesh "spans nan mm" before FaceModel refused its mean)
+        raise ValueError(f"the mesh's vertices must be finite, got {vertices[bad[0]].tolist()} for vertex "
+                         f"{int(bad[0])} ({bad.size} of the {vertices.shape[0]} vertices are not)")  # fmt: skip
     faces = np.asarray(mesh.faces, dtype=np.int64)
     if faces.ndim != 2 or faces.shape[0] == 0:
         raise ValueError(f"the mesh must hold triangles, got faces of shape {faces.shape}")
