@@ -107,6 +107,7 @@ def test_bad_files_are_refused_with_one_line(tmp_path):
         ("kind", {"faces": np.zeros((2, 3))}, "faces holds float64, not integer values"),
         ("shape", {"landmark_weights": np.ones((68, 2), np.float32)}, "landmark_weights must have shape"),
         ("nan", {"mean": np.full((113, 3), np.nan, np.float32)}, "mean holds non-finite values"),
+        ("mask", {"surface_vertex_mask": np.zeros(113, bool)}, "surface_vertex_mask must be True for exactly"),
     ):
         p = tmp_path / f"{name}.npz"
         p.write_bytes(good.read_bytes())
