@@ -145,7 +145,7 @@ def _check_winding(vertices: np.ndarray, faces: np.ndarray) -> None:
     # index run one way in one copy and the other way in the other. The two copies traverse each of their edges in
     # opposite directions, which the edge rule below takes for consistent; their normals cancel (zero vertex normals:
     # no shading) and the tracker's every start failed (NO_PATCHES, "too few fiducial patches").
-    _, group = np.unique(np.sort(proper, axis=1), axis=0, return_inverse=True)
+    _, first, group = np.unique(np.sort(proper, axis=1), axis=0, return_index=True, return_inverse=True)
     group = group.reshape(-1)
     turned = np.take_along_axis(proper, (np.argmin(proper, axis=1)[:, None] + np.arange(3)) % 3, axis=1)
     flipped = turned[:, 1] > turned[:, 2]
@@ -159,7 +159,6 @@ def _check_winding(vertices: np.ndarray, faces: np.ndarray) -> None:
             f"{sorted(faces[i].tolist())}): a double-sided mesh, whose two copies of a triangle face opposite ways "
             "and whose normals cancel; keep one copy of each, wound outward"
         )
-    _, first = np.unique(np.sort(proper, axis=1), axis=0, return_index=True)
     tri = proper[np.sort(first)]
     directed = np.stack([tri, np.roll(tri, -1, axis=1)], axis=-1).reshape(-1, 2)
     _, u_inv, u_counts = np.unique(np.sort(directed, axis=1), axis=0, return_inverse=True, return_counts=True)
