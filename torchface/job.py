@@ -363,7 +363,8 @@ class JobConfig:
             rendered clips; a re-anchored one from its record, without its mosaic: up to 8.1 mm, 1.6 degrees); one
             not re-anchored after ``max_frames`` rows goes on without it, as the uninterrupted run did (the batch's
             new videos keep it).
-        model: a face model file (:func:`torchface.model.save_face_model` writes one; loaded in float32 with
+        model: a face model file (``""`` and a ``"~/m.npz"`` nothing expands are refused, as ``out_dir``'s;
+            :func:`torchface.model.save_face_model` writes one; loaded in float32 with
             :func:`torchface.model.load_face_model`'s checks before any input is opened) to track with, or None for
             CANDIDE-3 (:func:`torchface.model.load_candide3`). The CSV's animation and FACS columns are the model's
             (:func:`torchface.io.track_columns`), the sidecar's ``model`` names it (``name``, ``file``, ``sha256``:
@@ -451,6 +452,10 @@ class JobConfig:
         _check_path(self.out_dir, "out_dir", "'.' for the current folder")
         check_no_tilde(self.out_dir, "out_dir")  # (nothing expands it: the outputs went to a folder '~' in the
         # working folder, as training_hooks' cache_dir once did)
+        if self.model is not None:  # (as training_hooks' FaceTrackingConfig.model: "~/m.npz" was taken, and the job
+            # said "~/m.npz: no such face model file"; "" was the current folder, "a folder, not a face model file")
+            _check_path(self.model, "model", "a face model file, or None for CANDIDE-3")
+            check_no_tilde(self.model, "model")
         try:
             object.__setattr__(self, "landmarks", tuple(self.landmarks))
         except TypeError:

@@ -146,6 +146,20 @@ def test_what_a_model_cannot_track_is_refused_before_anything_is_written(clip, t
         JobConfig(out, model=load_candide3())  # type: ignore[arg-type]
 
 
+def test_a_model_path_that_names_no_file_is_refused_when_the_config_is_made(tmp_path, monkeypatch):
+    """``JobConfig(model="~/m.npz")`` was taken (nothing expands the ``~``: the job then said "no such face model
+    file"), and ``model=""`` too (the current folder: "a folder, not a face model file"), where ``out_dir``'s and
+    training_hooks' ``FaceTrackingConfig.model`` are refused when made; a ``~name`` that no home is stays a name."""
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(ValueError, match=r"model '~/m.npz' starts with '~', which is not expanded .*expanduser"):
+        JobConfig(out_dir="o", model="~/m.npz")
+    with pytest.raises(ValueError, match="model is an empty path"):
+        JobConfig(out_dir="o", model="")
+    with pytest.raises(TypeError, match="model must be a path to a face model file or None"):
+        JobConfig(out_dir="o", model=5)
+    assert JobConfig(out_dir="o", model="~torchface-no-such-user.npz").model == "~torchface-no-such-user.npz"
+
+
 def test_a_model_whose_landmarks_cannot_start_a_track_is_refused_up_front(clip, tmp_path):
     """Three landmarks (the first frame's pose needs four): refused naming the model file, before anything is
     written (the landmarks file's check said only "3 of the 3 landmarks given")."""

@@ -135,6 +135,18 @@ def test_construction_validates_shapes(model):
         FaceModel(**dict(fields, shape_names=list(model.shape_names)))
     with pytest.raises(ValueError, match="faces index vertices outside"):
         FaceModel(**dict(fields, faces=model.faces + 200))
+    # a mask that is not the faces' (from a file, or a replace of the faces) was taken: an all-False one made the
+    # tracker's start a bare RuntimeError of amax
+    none = torch.zeros_like(model.surface_vertex_mask)
+    used = int(model.surface_vertex_mask.sum())  # (104 of the 113)
+    with pytest.raises(ValueError, match=r"surface_vertex_mask must be True for exactly the vertices that faces use, "
+                                         rf"got False for vertex 0, which a face uses \({used} vertices differ\)"):
+        FaceModel(**dict(fields, surface_vertex_mask=none))
+    unused = int((~model.surface_vertex_mask).nonzero()[0, 0])
+    extra = model.surface_vertex_mask.clone()
+    extra[unused] = True
+    with pytest.raises(ValueError, match=rf"got True for vertex {unused}, which no face uses \(1 vertices differ\)"):
+        FaceModel(**dict(fields, surface_vertex_mask=extra))
 
 
 def test_vertex_normals_known_answer_and_zero_safe():

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -244,6 +245,27 @@ def test_winding_must_be_consistent_and_the_face_must_look_toward_minus_z():
     # a repeated triangle or one with a repeated vertex is not a flip
     extra = np.concatenate([faces, faces[:5], [[0, 0, 1]]])
     assert load_mesh_model(trimesh.Trimesh(mean, extra, process=False)).num_faces == candide.num_faces + 6
+    # a triangle given in both windings (a double-sided mesh) passed the edge rule, each copy traversing the other's
+    # edges the other way: every tracker start failed (NO_PATCHES), the normals of the copies cancelling
+    for extra, pair in ((faces[:, ::-1], (0, candide.num_faces)), (faces[[7]][:, [1, 0, 2]], (7, candide.num_faces))):
+        with pytest.raises(ValueError, match=rf"{len(extra)} of the mesh's triangles are given in both windings, e.g. "
+                                             rf"triangles {pair[0]} and {pair[1]} \(vertices"):
+            load_mesh_model(trimesh.Trimesh(mean, np.concatenate([faces, extra]), process=False))
+    turned = np.concatenate([faces, faces[:5, [1, 2, 0]]])  # the same winding, listed from another vertex: a repeat
+    assert load_mesh_model(trimesh.Trimesh(mean, turned, process=False)).num_faces == candide.num_faces + 5
+
+
+@pytest.mark.parametrize("value", [np.inf, -np.inf, np.nan])
+def test_a_non_finite_vertex_is_refused_naming_it(value):
+    """A vertex at inf was refused as "fx must be a finite number, got nan" (the winding check's frontal view), and
+    one at NaN warned that the mesh "spans nan mm" (the unit's question) before FaceModel refused its mean."""
+    verts = TET_V.copy()
+    verts[2, 1] = value
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(ValueError, match=r"the mesh's vertices must be finite, got \[0.0, -?(inf|nan), 0.0\] "
+                                             r"for vertex 2 \(1 of the 5 vertices are not\)"):
+            load_mesh_model(trimesh.Trimesh(verts, TET_F, process=False), scale_to_mm=100.0)
 
 
 def test_blendshape_targets_given_as_whole_meshes_are_refused():

@@ -60,8 +60,18 @@ def test_components_are_oriented_independently():
 
 def test_nonmanifold_and_unused():
     fan = np.array([[0, 1, 2], [0, 1, 3], [0, 1, 4]])  # edge 0-1 shared by three triangles
-    with pytest.raises(ValueError, match="shared by 3 triangles"):
+    with pytest.raises(ValueError, match=r"shared by 3 triangles \(0 \[0, 1, 2\], 1 \[0, 1, 3\], 2 \[0, 1, 4\]\); "
+                                         r"expected a manifold \(at most 2\)$"):
         make_winding_consistent(fan)
+    # a triangle with a repeated vertex, or one given twice (both of which load_mesh_model's winding check passes, and
+    # whose message names this function): "edge (0, 1) is shared by 4 triangles" of 3, and by 3 of 2, said no more
+    square = np.array([[0, 1, 2], [0, 3, 1]])
+    with pytest.raises(ValueError, match=r"edge \(0, 1\) is used 4 times, by triangles 0 \[0, 1, 2\], 1 \[0, 3, 1\], "
+                                         r"2 \[0, 0, 1\]: triangle 2 repeats a vertex, which uses the edge twice"):
+        make_winding_consistent(np.concatenate([square, [[0, 0, 1]]]))
+    with pytest.raises(ValueError, match=r"shared by 3 triangles \(0 \[0, 1, 2\], 1 \[0, 3, 1\], 2 \[2, 1, 0\]\); "
+                                         r"expected a manifold \(at most 2\); a triangle is given more than once"):
+        make_winding_consistent(np.concatenate([square, [[2, 1, 0]]]))
     assert unused_vertices(7, fan).tolist() == [5, 6]
     with pytest.raises(ValueError, match=r"\(F, 3\)"):
         edge_use_counts(np.zeros((2, 4), dtype=int))

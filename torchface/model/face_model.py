@@ -264,13 +264,13 @@ class FaceModel:
         landmark_names: ``K`` names (iBUG-68 order when ``K = 68``).
         facs_names: FACS action unit names, e.g. ``("AU2", "AU4", ...)``.
         facs_matrix: ``(n_facs, A)`` link table, ``facs_values = anim_coeffs @ facs_matrix.T``.
-        surface_vertex_mask: ``(V,)`` bool, ``True`` for vertices used by a face.
+        surface_vertex_mask: ``(V,)`` bool, ``True`` for exactly the vertices used by a face.
 
     Construction checks the shapes, dtypes and devices above, that the shape, animation and FACS names are
     distinct within each tuple, that the floating tensors are finite, that each animation range has ``lo <= hi``
     and that the landmark weights are non-negative with rows that sum to one (within 1e-2:
-    :func:`check_landmark_weights`), and raises ``ValueError`` (``TypeError`` for a
-    field of the wrong type) otherwise.
+    :func:`check_landmark_weights`), that the indices index vertices and that ``surface_vertex_mask`` marks those
+    of the faces, and raises ``ValueError`` (``TypeError`` for a field of the wrong type) otherwise.
 
     Example:
         >>> from torchface.model import load_candide3
@@ -356,6 +356,19 @@ class FaceModel:
         if self.faces.numel() and (int(self.faces.min()) < 0 or int(self.faces.max()) >= num_v):
             got = (int(self.faces.min()), int(self.faces.max()))
             raise ValueError(f"faces index vertices outside [0, {num_v}): min/max {got}")
+        # (a mask of its own, from a file or a dataclasses.replace of the faces, was taken: an all-False one made the
+        # tracker's start a bare RuntimeError, "amax(): Expected reduction dim to be specified ...", and a wrong one
+        # sizes the normalised face's and the templates' crops from other vertices)
+        used = torch.zeros(num_v, dtype=torch.bool, device=mean.device)
+        used[self.faces.reshape(-1)] = True
+        differ = (used != self.surface_vertex_mask).nonzero().flatten()
+        if differ.numel():
+            v = int(differ[0])
+            raise ValueError(
+                f"surface_vertex_mask must be True for exactly the vertices that faces use, got {bool(~used[v])} for "
+                f"vertex {v}, which {'a' if bool(used[v]) else 'no'} face uses ({differ.numel()} vertices differ): "
+                "make it from the faces (mask[faces.flatten()] = True), as torchface's loaders do"
+            )
         if self.landmark_vertices.numel() and (
             int(self.landmark_vertices.min()) < 0 or int(self.landmark_vertices.max()) >= num_v
         ):

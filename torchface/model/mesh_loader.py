@@ -130,16 +130,35 @@ def _check_displacements(basis: np.ndarray, names: tuple[str, ...], vertices: np
 
 def _check_winding(vertices: np.ndarray, faces: np.ndarray) -> None:
     """Raise ``ValueError`` unless the ``(F, 3)`` triangles on the ``(V, 3)`` head-frame vertices are wound
-    consistently (no edge shared by two triangles is traversed by both in the same direction; a repeated
-    triangle or one with a repeated vertex is no evidence either way) and the face looks toward ``-z``: of the
+    consistently (no edge shared by two triangles is traversed by both in the same direction, and no triangle is
+    given in both windings; a triangle repeated in one winding or one with a repeated vertex is no evidence either
+    way) and the face looks toward ``-z``: of the
     pixels of a frontal, nearly orthographic 32 x 32 view that the mesh covers, at least half see the front of
     a triangle (:func:`~torchface.rendering.rasterizer.rasterize`'s ``facing``)."""
     from torchface.backend import Backend
     from torchface.geometry.camera import Intrinsics
     from torchface.rendering.rasterizer import rasterize
 
-    proper = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 2] != faces[:, 0])]
-    _, first = np.unique(np.sort(proper, axis=1), axis=0, return_index=True)
+    rows = np.flatnonzero((faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 2] != faces[:, 0]))
+    proper = faces[rows]
+    # a triangle given in both windings (a double-sided mesh): the same three vertices, which listed from the lowest
+    # index run one way in one copy and the other way in the other. The two copies traverse each of their edges in
+    # opposite directions, which the edge rule below takes for consistent; their normals cancel (zero vertex normals:
+    # no shading) and the tracker's every start failed (NO_PATCHES, "too few fiducial patches").
+    _, first, group = np.unique(np.sort(proper, axis=1), axis=0, return_index=True, return_inverse=True)
+    group = group.reshape(-1)
+    turned = np.take_along_axis(proper, (np.argmin(proper, axis=1)[:, None] + np.arange(3)) % 3, axis=1)
+    flipped = turned[:, 1] > turned[:, 2]
+    count = int(group.max()) + 1 if group.size else 0
+    both = np.flatnonzero((np.bincount(group[flipped], minlength=count) > 0)
+                          & (np.bincount(group[~flipped], minlength=count) > 0))  # fmt: skip
+    if both.size:
+        i, j = sorted((int(rows[(group == both[0]) & flipped][0]), int(rows[(group == both[0]) & ~flipped][0])))
+        raise ValueError(
+            f"{both.size} of the mesh's triangles are given in both windings, e.g. triangles {i} and {j} (vertices "
+            f"{sorted(faces[i].tolist())}): a double-sided mesh, whose two copies of a triangle face opposite ways "
+            "and whose normals cancel; keep one copy of each, wound outward"
+        )
     tri = proper[np.sort(first)]
     directed = np.stack([tri, np.roll(tri, -1, axis=1)], axis=-1).reshape(-1, 2)
     _, u_inv, u_counts = np.unique(np.sort(directed, axis=1), axis=0, return_inverse=True, return_counts=True)
@@ -307,12 +326,13 @@ def load_mesh_model(
             one string (a sequence of names is expected), ``facs_links`` is not a dict or a value of it is neither
             an AU name nor a collection of them, ``scale_to_mm`` is not a number, or ``landmark_vertices`` are not
             integers.
-        ValueError: a basis, name list, landmark index or range has the wrong size, a basis entry is a whole mesh
-            (close to the mesh itself) rather than a displacement, ``landmark_vertices`` is not 1-D (2-D with
+        ValueError: a vertex of the mesh is not finite (NaN or inf; a basis's are refused as :class:`FaceModel`
+            refuses them), a basis, name list, landmark index or range has the wrong size, a basis entry is a whole
+            mesh (close to the mesh itself) rather than a displacement, ``landmark_vertices`` is not 1-D (2-D with
             ``landmark_weights`` of its shape, at most 3 columns) or holds fractions, ``landmark_weights`` are not
             finite, one is negative or a row does not sum to one (each within 1e-2), the file holds no triangles,
-            they are not wound consistently or
-            the frontal view sees mostly their back, ``to_head_frame`` is not orthogonal, ``scale_to_mm`` is not
+            they are not wound consistently (or a triangle is given in both windings, a double-sided mesh) or the
+            frontal view sees mostly their back, ``to_head_frame`` is not orthogonal, ``scale_to_mm`` is not
             positive and finite, a ``facs_links`` name is not a blendshape name, or ``device`` is not a device this
             machine has (the message lists those it has).
 
@@ -353,6 +373,11 @@ def load_mesh_model(
         else:
             raise ValueError(f"{default_name}: trimesh read {n} of the file's {obj_vertices.shape[0]} vertices, not "
                              "in the file's order: the model's vertices would not be the file's")  # fmt: skip
+    bad = np.flatnonzero(~np.isfinite(vertices).all(axis=1))
+    if bad.size:  # (an inf was "fx must be a finite number, got nan" from the winding check's view; a NaN warned
+        # that the mesh "spans nan mm" before FaceModel refused its mean)
+        raise ValueError(f"the mesh's vertices must be finite, got {vertices[bad[0]].tolist()} for vertex "
+                         f"{int(bad[0])} ({bad.size} of the {vertices.shape[0]} vertices are not)")  # fmt: skip
     faces = np.asarray(mesh.faces, dtype=np.int64)
     if faces.ndim != 2 or faces.shape[0] == 0:
         raise ValueError(f"the mesh must hold triangles, got faces of shape {faces.shape}")

@@ -57,6 +57,12 @@ _TENSORS = {
 }  # fmt: skip
 
 
+#: The entries this version reads (those it writes); an entry of another name is left unread, as the module says (an
+#: entry a later version adds, of any kind, does not refuse the file: an object array did, "cannot be loaded when
+#: allow_pickle=False").
+_ENTRIES = frozenset({"format", "format_version", "name", *_NAMES, *_TENSORS})
+
+
 def _array(value: torch.Tensor) -> np.ndarray:
     """A tensor as the file holds it: on the CPU, ``bfloat16`` as ``float32`` (exact)."""
     value = value.detach().cpu()
@@ -124,8 +130,8 @@ def _read(p: Path) -> dict[str, np.ndarray]:
                 raise InputError(f"{not_one}: one .npy array")
             if not magic.startswith(b"PK"):  # (np.load took any other file for a pickle, and said so)
                 raise InputError(f"{not_one}: not an .npz archive")
-            with np.load(f, allow_pickle=False) as data:
-                arrays = {k: data[k] for k in data.files}
+            with np.load(f, allow_pickle=False) as data:  # (this version's entries: a later one's are left unread)
+                arrays = {k: data[k] for k in data.files if k in _ENTRIES}
     except (InputError, MemoryError):
         raise
     # (a damaged archive: BadZipFile, EOFError, ValueError; a damaged compressed one, np.savez_compressed's, also

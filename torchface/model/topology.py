@@ -65,7 +65,8 @@ def make_winding_consistent(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
     Raises:
         ValueError: the surface is not orientable (a Moebius-like cycle of neighbours), or an edge is
-            shared by more than two triangles.
+            used more than twice (shared by more than two triangles, or used by a triangle with a repeated vertex,
+            or by a triangle given twice, which the message says).
     """
     faces = _check_faces(faces).copy()
     num_f = faces.shape[0]
@@ -74,7 +75,19 @@ def make_winding_consistent(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         edge_faces.setdefault((a, b), []).append(row // 3)
     for edge, owners in edge_faces.items():
         if len(owners) > 2:
-            raise ValueError(f"edge {edge} is shared by {len(owners)} triangles; expected a manifold (at most 2)")
+            # (which triangles, and why where one repeats a vertex, and so uses an edge twice, or a triangle is given
+            # twice: load_mesh_model's check passes both, and its message sends a mesh here)
+            tris = sorted(set(owners))
+            named = ", ".join(f"{f} {faces[f].tolist()}" for f in tris)
+            repeated_vertex = [f for f in tris if len(set(faces[f].tolist())) < 3]
+            if repeated_vertex:
+                raise ValueError(f"edge {edge} is used {len(owners)} times, by triangles {named}: triangle "
+                                 f"{repeated_vertex[0]} repeats a vertex, which uses the edge twice; leave such "
+                                 "triangles out (they have no area)")  # fmt: skip
+            corners = [tuple(sorted(faces[f].tolist())) for f in tris]
+            twice = "; a triangle is given more than once: keep one copy" if len(set(corners)) < len(corners) else ""
+            raise ValueError(f"edge {edge} is shared by {len(tris)} triangles ({named}); expected a manifold (at "
+                             f"most 2){twice}")  # fmt: skip
 
     def uses(face: np.ndarray, a: int, b: int) -> bool:
         """Whether ``face`` traverses ``a->b``."""
