@@ -174,7 +174,7 @@ from torchface.io.table import (
     result_rows, track_columns,
 )
 from torchface.io.video import (
-    ASSUMED_FPS, IMAGE_SUFFIXES, VIDEO_SUFFIXES, FrameReader, image_files, open_frames, opencv_path,
+    ASSUMED_FPS, IMAGE_SUFFIXES, PLAUSIBLE_FPS, VIDEO_SUFFIXES, FrameReader, image_files, open_frames, opencv_path,
 )  # fmt: skip
 from torchface.model.candide import load_candide3
 from torchface.model.face_model import FaceModel
@@ -213,8 +213,9 @@ __all__ = [
 BATCH_PIXELS: int = 128 * 640 * 480
 
 #: The frame rates :class:`JobConfig`'s ``fps`` (``torchface track --fps``) takes, frames per second: above 1000 the
-#: CSV's millisecond ``timestamp`` of two rows could coincide (and a container's rate is taken as none there,
-#: :class:`torchface.io.VideoInfo`'s ``fps_assumed``); OpenCV's mp4v writer cannot write the overlay at 0.001 or less.
+#: CSV's millisecond ``timestamp`` of two rows could coincide; OpenCV's mp4v writer cannot write the overlay at 0.001
+#: or less (a container's rate outside (0.001, 1000) is taken as none, with a warning: :class:`torchface.io.VideoInfo`'s
+#: ``fps_assumed`` and ``declared_fps``, :data:`torchface.io.video.PLAUSIBLE_FPS`).
 FPS_RANGE: str = "(0.001, 1000]"
 
 #: Whether the job runs for the command line (``torchface track``, which sets it: :func:`_for_command_line`): its
@@ -408,8 +409,8 @@ class JobConfig:
             them), their overlay and normalised videos run at it, and the sidecar's ``input.fps`` is it, with
             ``input.fps_given`` true and ``fps_assumed`` false. A video that gives its own rate keeps it, with a
             ``UserWarning`` that says ``fps`` was not used for it. Over 1000 frames/s the rows' millisecond
-            timestamps would coincide (a container's rate is taken as none there too); at 0.001 or less the mp4v
-            overlay cannot be written. The tracking does not depend on it (but for ``smoothing``, which runs at the
+            timestamps would coincide; at 0.001 or less the mp4v overlay cannot be written (a container's rate
+            there is taken as none too, with a ``UserWarning``, and ``fps`` is such a video's). The tracking does not depend on it (but for ``smoothing``, which runs at the
             frames' times). A resume with another rate for such an input is refused (a partial CSV would hold the
             rows of two clocks; None is :data:`~torchface.io.video.ASSUMED_FPS`, 25, so ``fps=25`` resumes a run
             without it).
@@ -2571,6 +2572,13 @@ def _open_input(
             warnings.warn(_worded(f"{path}: --fps {config.fps:g} not used for it: the video gives its own frame "
                                   f"rate, {reader.info.fps:g} frames/s, which its timestamps and overlay follow"),
                           UserWarning, stacklevel=2)  # fmt: skip
+        if reader.info.declared_fps is not None:  # (0.0005: its overlay could not be written at it)
+            low, high = PLAUSIBLE_FPS
+            other = "" if reader.info.fps_given else " (--fps gives another)"
+            warnings.warn(_worded(f"{path}: its container declares {reader.info.declared_fps:g} frames/s, not a "
+                                  f"plausible frame rate (one in ({low:g}, {high:g})): taken as none, its overlay and "
+                                  f"normalised videos at {reader.info.fps:g} frames/s{other}; the container's own "
+                                  "frame times are still the rows' timestamps"), UserWarning, stacklevel=2)  # fmt: skip
         frame = next(reader)
         lm = config.landmarks[k] if config.landmarks else None
         t0 = time.perf_counter()
