@@ -600,15 +600,19 @@ class VideosStopped(InputError):
             order: what the run would have returned for them.
         stopped: the output names of the videos that stopped, in input order.
         reasons: why each of them stopped (``"stopped at a frame that could not be read"``, ...), in that order.
+        names: the output names of every input, in input order (the videos stopped among the others: ``torchface
+            track``'s summary lists them in that order); empty where not given.
     """
 
     def __init__(
-        self, message: str, summaries: Sequence[VideoSummary], stopped: Sequence[str], reasons: Sequence[str] = ()
+        self, message: str, summaries: Sequence[VideoSummary], stopped: Sequence[str], reasons: Sequence[str] = (),
+        names: Sequence[str] = (),
     ) -> None:
         super().__init__(message)
         self.summaries = list(summaries)
         self.stopped = tuple(stopped)
         self.reasons = tuple(reasons) or (UNREADABLE_FRAME,) * len(self.stopped)
+        self.names = tuple(names)
 
 
 class _ReplayedTimeError(InputError):
@@ -2951,7 +2955,7 @@ def _track_opened(
         what = "; ".join(refused + ([unread] if unread else []))
         reasons = [getattr(s.error, "reason", UNREADABLE_FRAME) for s in failed]
         raise VideosStopped(f"{what}{rest}", [summaries[str(v)] for v in inputs if str(v) in summaries],
-                            [s.name for s in failed], reasons)  # fmt: skip
+                            [s.name for s in failed], reasons, [output_name(v) for v in inputs])  # fmt: skip
     return [summaries[str(v)] for v in inputs]
 
 
