@@ -3775,7 +3775,10 @@ def _finalise(
         "redetections": s.redetections,
         "detector_calls": s.detector_calls,
         "restart_failures": dict(sorted(s.restart_failures.items())),
-        "outputs": {k: str(v) for k, v in p.items() if k != "json" and (k != "meshes" or config.meshes)},
+        # (relative to the sidecar's own folder, where they lie: the run's --out as given, relative to its working
+        # folder, broke them when read from elsewhere or once the folder was moved; an earlier version's sidecar
+        # holds those, whose names are these: Path(json).parent / Path(path).name reads both)
+        "outputs": {k: v.name for k, v in p.items() if k != "json" and (k != "meshes" or config.meshes)},
         "videos": _video_timing(s),
     }
     # (its checkpoint, and a temporary one a SIGKILL cut off while it was written, before the JSON: a video killed

@@ -4217,3 +4217,22 @@ def test_a_focal_option_too_small_is_told_as_the_option_typed(clip, tmp_path, ca
     assert "Intrinsics" not in err
     _assert_clean_failure(main(args + ["--focal", "-5"]), capsys, tmp_path / "nothing",
                           "--focal must be a finite number > 0 (pixels), got -5.0")  # fmt: skip
+
+
+def test_the_sidecars_outputs_are_relative_to_its_own_folder(clip, tmp_path, monkeypatch):
+    """The sidecar's ``outputs`` are the files' names, relative to its own folder: they were the paths under ``--out``
+    as given (``res/clip.csv`` for a relative ``--out res``), relative to the run's working folder, which a script
+    reading the sidecar from elsewhere, or once the folder was moved, did not find."""
+    video, lm, _ = clip
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "run").mkdir()
+    monkeypatch.chdir(tmp_path / "run")
+    assert main(["track", str(video), "--out", "res", "--landmarks", str(lm), "--quiet", "--meshes",
+                 "--no-online-refine"]) == 0  # fmt: skip
+    moved = tmp_path / "elsewhere"
+    (tmp_path / "run" / "res").rename(moved)
+    side = json.loads((moved / f"{NAME}.json").read_text())
+    kinds = {k: v.name for k, v in output_paths(moved, NAME).items() if k != "json"}
+    assert side["outputs"] == kinds, side["outputs"]
+    for path in side["outputs"].values():
+        assert (moved / path).exists(), path
