@@ -165,7 +165,7 @@ from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS
 from torchface.detect import _Batched, _uint8_planes, accepts_near, detector_image, search_first_face, usable_detection
 from torchface.geometry._checks import check_bool, check_int, check_number, rotation_defects
 from torchface.geometry.camera import Intrinsics
-from torchface.geometry.so3 import axis_angle_to_matrix, matrix_to_axis_angle
+from torchface.geometry.so3 import axis_angle_to_matrix, matrix_to_axis_angle, matrix_to_euler
 from torchface.io.errors import InputError, OutputError, dangling_link
 from torchface.io.landmarks import NUM_LANDMARKS, check_landmarks, read_landmarks
 from torchface.io.sidecar import package_versions, to_jsonable, write_json
@@ -180,6 +180,7 @@ from torchface.model.candide import load_candide3
 from torchface.model.face_model import FaceModel
 from torchface.model.model_file import face_model_digest, load_face_model
 from torchface.normalise.face import NormalisedFace
+from torchface.solver.least_squares import SolveStatus
 from torchface.tracker.fit import LandmarkFit, check_model_landmarks, fit_landmarks
 from torchface.tracker.lookahead import LookaheadConfig, check_refine_first, lookahead_fit
 from torchface.tracker.managed import initialise_managed, managed_step
@@ -3313,7 +3314,8 @@ def _track_group(
         for s, code in zip(streams, cast(Tensor, result.start_failure).tolist()):  # (initialise's: always set)
             s.start_failure = StartFailure(code)
         # (a detector starts a failed stream afresh only with template management: managed_step's restart)
-        _warn_failed_starts(streams, detector is not None and config.tracker.template.enabled)
+        hints = [_swapped_fit_hint(model, config, intr, s, W, H) if s.replay is None else "" for s in streams]
+        _warn_failed_starts(streams, detector is not None and config.tracker.template.enabled, hints)
         if anchored:
             state = _with_recorded_offsets(state, list(anchored.items()))
         if online is not None and any(s.replay is not None and not s.retrack for s in streams):
@@ -3849,21 +3851,53 @@ def _video_timing(s: _Stream) -> dict:
     }  # fmt: skip
 
 
-def _warn_failed_starts(streams: list[_Stream], restarts: bool) -> None:
+#: The largest roll (degrees, about the optical axis) of a fit of a failed start's landmarks with x and y swapped that
+#: :func:`_swapped_fit_hint` takes for the file's being written ``(y, x)``: an upright face's points written so fit
+#: upright once swapped, where a mirrored face's (a flipped frame's) fit a face rolled 90 degrees.
+SWAPPED_FIT_MAX_ROLL_DEG: float = 45.0
+
+
+def _swapped_fit_hint(model: FaceModel, config: JobConfig, intr: Intrinsics, s: _Stream, W: int, H: int) -> str:
+    """What the warning of a failed start adds where ``s``'s landmarks came from a file (not a detector), the start
+    failed as :attr:`~torchface.tracker.step.StartFailure.NO_POSE` (a mirrored face's points: a headerless CSV of
+    ``(y, x)`` pairs, ``(row, column)``, as they are written), and its points with x and y swapped lie in the
+    ``W x H`` frame and fit a pose (:func:`~torchface.tracker.fit.fit_landmarks`, the tracker's fit settings) of
+    a roll under :data:`SWAPPED_FIT_MAX_ROLL_DEG`: ``"; with x and y swapped ..."``; else ``""``. The landmarks are
+    not swapped: the file is the user's to mend. (A diagnosis only: the start, the rows, are as without it.)"""
+    if s.start_failure != StartFailure.NO_POSE or s.landmarks_source.startswith("detector:"):
+        return ""
+    swapped = np.ascontiguousarray(s.landmarks[:, ::-1])
+    given = swapped[np.isfinite(swapped).all(axis=1)]
+    if not len(given) or not ((given >= -0.5) & (given <= np.array([W - 0.5, H - 0.5]))).all():
+        return ""
+    lm = torch.as_tensor(swapped, dtype=model.dtype, device=model.device)[None]
+    fit = fit_landmarks(model, lm, intr, config=config.tracker.fit)
+    if int(fit.status[0]) == int(SolveStatus.FAILED):
+        return ""
+    roll = float(matrix_to_euler(fit.rotation.double())[0, 2])
+    if not abs(roll) < SWAPPED_FIT_MAX_ROLL_DEG:
+        return ""
+    return (f"; with x and y swapped its landmarks fit a pose: does {s.landmarks_source} hold (y, x) pairs, (row, "
+            "column)? Swap its columns, or give it a first line y,x, then track it again without --resume")
+
+
+def _warn_failed_starts(streams: list[_Stream], restarts: bool, hints: Sequence[str] = ()) -> None:
     """Warn (one line per video) where the start from the first frame's landmarks failed, with its reason
     (:attr:`_Stream.start_failure`, :class:`~torchface.tracker.step.StartFailure`: its name and
     :attr:`~torchface.tracker.step.StartFailure.reason`, such as landmarks that no face fits, a black first frame, a
     face mostly outside the frame): every row of that video was written unusable (``success`` 0) with nothing said
     but the summary's lost count, and the warning guessed the cause among them all. ``restarts``: a detector starts
     such a stream afresh (with template management only: without it, its rows stay unusable, and the warning said it
-    would be lost until the detector found a face)."""
-    for s in streams:
+    would be lost until the detector found a face). ``hints``: per stream, what its line adds (:func:`_swapped_fit_hint`),
+    or none."""
+    for s, hint in itertools.zip_longest(streams, hints[: len(streams)], fillvalue=""):
         if s.start_failure == StartFailure.NONE or s.replay is not None:  # (a resumed video's: said in its first run)
             continue
         then = ("it is lost until the detector finds a face it can start from" if restarts else
                 "every row is unusable (success 0): give the landmarks of a frame that shows the face")  # fmt: skip
-        warnings.warn(f"{s.name}: the start from the landmarks of frame {s.start} failed ({s.start_failure.name}): "
-                      f"{s.start_failure.reason}; {then}", RuntimeWarning, stacklevel=3)
+        warnings.warn(_worded(f"{s.name}: the start from the landmarks of frame {s.start} failed "
+                              f"({s.start_failure.name}): {s.start_failure.reason}; {then}{hint}"), RuntimeWarning,
+                      stacklevel=3)  # fmt: skip
 
 
 def _start_record(config: JobConfig, s: _Stream) -> dict:

@@ -4236,3 +4236,28 @@ def test_the_sidecars_outputs_are_relative_to_its_own_folder(clip, tmp_path, mon
     assert side["outputs"] == kinds, side["outputs"]
     for path in side["outputs"].values():
         assert (moved / path).exists(), path
+
+
+def test_a_failed_start_whose_landmarks_fit_swapped_says_so(clip, tmp_path, capsys):
+    """Landmarks written ``(y, x)`` without a header (a mirrored face's points, as they are read) failed the start
+    (``NO_POSE``, status 3) with nothing said of the swap; the warning now says that with x and y swapped they fit a
+    pose, naming the file (not swapping them: the rows are as they were). A mirrored face's points (a flipped frame's)
+    fit a pose swapped too, but a face rolled about 90 degrees: not said for them."""
+    video, lm, _ = clip
+    points = np.loadtxt(lm, delimiter=",", skiprows=1)
+    swapped, mirrored = tmp_path / "swapped.csv", tmp_path / "mirrored.csv"
+    np.savetxt(swapped, points[:, ::-1], delimiter=",")
+    np.savetxt(mirrored, np.c_[W - 1 - points[:, 0], points[:, 1]], delimiter=",")
+    said = {}
+    for f in (swapped, mirrored):
+        assert main(["track", str(video), "--out", str(tmp_path / f.stem), "--landmarks", str(f), "--quiet",
+                     "--no-online-refine"]) == 3  # fmt: skip
+        err = capsys.readouterr().err
+        (said[f.stem],) = [line for line in err.splitlines() if "the start from the landmarks of frame 0 failed" in line]
+        assert "(NO_POSE)" in said[f.stem], err
+    assert said["swapped"].endswith(
+        f"; with x and y swapped its landmarks fit a pose: does {swapped} hold (y, x) pairs, (row, column)? Swap its "
+        "columns, or give it a first line y,x, then track it again without --resume"), said["swapped"]
+    assert "swapped" not in said["mirrored"], said["mirrored"]
+    side = json.loads((tmp_path / "swapped" / f"{NAME}.json").read_text())
+    assert side["start"]["failure"]["name"] == "NO_POSE"
