@@ -411,10 +411,10 @@ class JobConfig:
             ``input.fps_given`` true and ``fps_assumed`` false. A video that gives its own rate keeps it, with a
             ``UserWarning`` that says ``fps`` was not used for it. Over 1000 frames/s the rows' millisecond
             timestamps would coincide; at 0.001 or less the mp4v overlay cannot be written (a container's rate
-            there is taken as none too, with a ``UserWarning``, and ``fps`` is such a video's). The tracking does not depend on it (but for ``smoothing``, which runs at the
-            frames' times). A resume with another rate for such an input is refused (a partial CSV would hold the
-            rows of two clocks; None is :data:`~torchface.io.video.ASSUMED_FPS`, 25, so ``fps=25`` resumes a run
-            without it).
+            there is taken as none too, with a ``UserWarning``, and ``fps`` is such a video's). The tracking does
+            not depend on it (but for ``smoothing``, which runs at the frames' times). A resume with another rate
+            for such an input is refused (a partial CSV would hold the rows of two clocks; None is
+            :data:`~torchface.io.video.ASSUMED_FPS`, 25, so ``fps=25`` resumes a run without it).
     """
 
     out_dir: str | os.PathLike[str]
@@ -3888,8 +3888,8 @@ def _warn_failed_starts(streams: list[_Stream], restarts: bool, hints: Sequence[
     face mostly outside the frame): every row of that video was written unusable (``success`` 0) with nothing said
     but the summary's lost count, and the warning guessed the cause among them all. ``restarts``: a detector starts
     such a stream afresh (with template management only: without it, its rows stay unusable, and the warning said it
-    would be lost until the detector found a face). ``hints``: per stream, what its line adds (:func:`_swapped_fit_hint`),
-    or none."""
+    would be lost until the detector found a face). ``hints``: per stream, what its line adds
+    (:func:`_swapped_fit_hint`), or none."""
     for s, hint in itertools.zip_longest(streams, hints[: len(streams)], fillvalue=""):
         if s.start_failure == StartFailure.NONE or s.replay is not None:  # (a resumed video's: said in its first run)
             continue

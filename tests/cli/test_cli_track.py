@@ -4253,7 +4253,7 @@ def test_a_failed_start_whose_landmarks_fit_swapped_says_so(clip, tmp_path, caps
         assert main(["track", str(video), "--out", str(tmp_path / f.stem), "--landmarks", str(f), "--quiet",
                      "--no-online-refine"]) == 3  # fmt: skip
         err = capsys.readouterr().err
-        (said[f.stem],) = [line for line in err.splitlines() if "the start from the landmarks of frame 0 failed" in line]
+        (said[f.stem],) = [x for x in err.splitlines() if "the start from the landmarks of frame 0 failed" in x]
         assert "(NO_POSE)" in said[f.stem], err
     assert said["swapped"].endswith(
         f"; with x and y swapped its landmarks fit a pose: does {swapped} hold (y, x) pairs, (row, column)? Swap its "
