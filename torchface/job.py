@@ -3890,7 +3890,7 @@ def _warn_failed_starts(streams: list[_Stream], restarts: bool, hints: Sequence[
     such a stream afresh (with template management only: without it, its rows stay unusable, and the warning said it
     would be lost until the detector found a face). ``hints``: per stream, what its line adds
     (:func:`_swapped_fit_hint`), or none."""
-    for s, hint in itertools.zip_longest(streams, hints[: len(streams)], fillvalue=""):
+    for s, hint in zip(streams, [*hints[: len(streams)], *[""] * (len(streams) - len(hints))]):
         if s.start_failure == StartFailure.NONE or s.replay is not None:  # (a resumed video's: said in its first run)
             continue
         then = ("it is lost until the detector finds a face it can start from" if restarts else
