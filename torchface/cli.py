@@ -342,12 +342,20 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _print_summary(summaries, out: TextIO, stopped: tuple[str, ...] = (), reasons: tuple[str, ...] = ()) -> None:
+def _print_summary(
+    summaries, out: TextIO, stopped: tuple[str, ...] = (), reasons: tuple[str, ...] = (), names: tuple[str, ...] = ()
+) -> None:
     """Write the run's summary to ``out`` in one piece (one ``write``): written a line at a time (with Python's
     output unbuffered, ``PYTHONUNBUFFERED=1`` as many containers set it), ``torchface track ... | head -1`` exited
-    with 141, its reader gone after the first line, where docs/cli.md says the summary reaches the pipe whole."""
-    lines = ["", "summary"]
+    with 141, its reader gone after the first line, where docs/cli.md says the summary reaches the pipe whole.
+
+    ``stopped`` and ``reasons``: the videos a :class:`~torchface.job.VideosStopped` names, and why; ``names`` (its
+    ``names``): every input's output name in input order, in which the videos' lines are listed (the stopped ones
+    came last, after the others'); a name not in it goes last."""
+    blocks: list[tuple[str, list[str]]] = []
     for s in summaries:
+        lines: list[str] = []
+        blocks.append((s.name, lines))
         if s.refused is not None:  # (--keep-going)
             lines.append(f"  {s.name}: skipped, not tracked: {s.refused}")
             continue
@@ -378,7 +386,10 @@ def _print_summary(summaries, out: TextIO, stopped: tuple[str, ...] = (), reason
                          f"met again when tracked again: the CSV holds rows of two runs that disagree ({s.name}.json's "
                          "resumed says by how much; track it without --resume for rows of one run)")  # fmt: skip
     for name, why in zip(stopped, reasons):  # (VideosStopped: the error printed after the summary says where and why)
-        lines.append(f"  {name}: {why}, not completed (its rows so far are kept in {name}.csv.partial)")
+        blocks.append((name, [f"  {name}: {why}, not completed (its rows so far are kept in {name}.csv.partial)"]))
+    at = {name: k for k, name in enumerate(names)}
+    blocks.sort(key=lambda block: at.get(block[0], len(at)))  # (stable: without names, as they came)
+    lines = ["", "summary", *(line for _, said in blocks for line in said)]
     written = [s for s in summaries if s.outputs]  # (--keep-going: a skipped input has none)
     if written:
         folder = Path(written[0].outputs[0]).parent
@@ -476,7 +487,7 @@ def _run_track(
             stopped, reasons = exc.stopped, exc.reasons
             if display is not None:
                 display.flush()
-            _print_summary(exc.summaries, sys.stdout, exc.stopped, exc.reasons)
+            _print_summary(exc.summaries, sys.stdout, exc.stopped, exc.reasons, exc.names)
             raise
         if display is not None:
             display.flush()  # the last reports, when a redraw was due later

@@ -165,7 +165,7 @@ from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS
 from torchface.detect import _Batched, _uint8_planes, accepts_near, detector_image, search_first_face, usable_detection
 from torchface.geometry._checks import check_bool, check_int, check_number, rotation_defects
 from torchface.geometry.camera import Intrinsics
-from torchface.geometry.so3 import axis_angle_to_matrix, matrix_to_axis_angle
+from torchface.geometry.so3 import axis_angle_to_matrix, matrix_to_axis_angle, matrix_to_euler
 from torchface.io.errors import InputError, OutputError, dangling_link
 from torchface.io.landmarks import NUM_LANDMARKS, check_landmarks, read_landmarks
 from torchface.io.sidecar import package_versions, to_jsonable, write_json
@@ -174,12 +174,13 @@ from torchface.io.table import (
     result_rows, track_columns,
 )
 from torchface.io.video import (
-    ASSUMED_FPS, IMAGE_SUFFIXES, VIDEO_SUFFIXES, FrameReader, image_files, open_frames, opencv_path,
+    ASSUMED_FPS, IMAGE_SUFFIXES, PLAUSIBLE_FPS, VIDEO_SUFFIXES, FrameReader, image_files, open_frames, opencv_path,
 )  # fmt: skip
 from torchface.model.candide import load_candide3
 from torchface.model.face_model import FaceModel
 from torchface.model.model_file import face_model_digest, load_face_model
 from torchface.normalise.face import NormalisedFace
+from torchface.solver.least_squares import SolveStatus
 from torchface.tracker.fit import LandmarkFit, check_model_landmarks, fit_landmarks
 from torchface.tracker.lookahead import LookaheadConfig, check_refine_first, lookahead_fit
 from torchface.tracker.managed import initialise_managed, managed_step
@@ -213,8 +214,9 @@ __all__ = [
 BATCH_PIXELS: int = 128 * 640 * 480
 
 #: The frame rates :class:`JobConfig`'s ``fps`` (``torchface track --fps``) takes, frames per second: above 1000 the
-#: CSV's millisecond ``timestamp`` of two rows could coincide (and a container's rate is taken as none there,
-#: :class:`torchface.io.VideoInfo`'s ``fps_assumed``); OpenCV's mp4v writer cannot write the overlay at 0.001 or less.
+#: CSV's millisecond ``timestamp`` of two rows could coincide; OpenCV's mp4v writer cannot write the overlay at 0.001
+#: or less (a container's rate outside (0.001, 1000) is taken as none, with a warning: :class:`torchface.io.VideoInfo`'s
+#: ``fps_assumed`` and ``declared_fps``, :data:`torchface.io.video.PLAUSIBLE_FPS`).
 FPS_RANGE: str = "(0.001, 1000]"
 
 #: Whether the job runs for the command line (``torchface track``, which sets it: :func:`_for_command_line`): its
@@ -409,11 +411,11 @@ class JobConfig:
             them), their overlay and normalised videos run at it, and the sidecar's ``input.fps`` is it, with
             ``input.fps_given`` true and ``fps_assumed`` false. A video that gives its own rate keeps it, with a
             ``UserWarning`` that says ``fps`` was not used for it. Over 1000 frames/s the rows' millisecond
-            timestamps would coincide (a container's rate is taken as none there too); at 0.001 or less the mp4v
-            overlay cannot be written. The tracking does not depend on it (but for ``smoothing``, which runs at the
-            frames' times). A resume with another rate for such an input is refused (a partial CSV would hold the
-            rows of two clocks; None is :data:`~torchface.io.video.ASSUMED_FPS`, 25, so ``fps=25`` resumes a run
-            without it).
+            timestamps would coincide; at 0.001 or less the mp4v overlay cannot be written (a container's rate
+            there is taken as none too, with a ``UserWarning``, and ``fps`` is such a video's). The tracking does
+            not depend on it (but for ``smoothing``, which runs at the frames' times). A resume with another rate
+            for such an input is refused (a partial CSV would hold the rows of two clocks; None is
+            :data:`~torchface.io.video.ASSUMED_FPS`, 25, so ``fps=25`` resumes a run without it).
     """
 
     out_dir: str | os.PathLike[str]
@@ -604,15 +606,19 @@ class VideosStopped(InputError):
             order: what the run would have returned for them.
         stopped: the output names of the videos that stopped, in input order.
         reasons: why each of them stopped (``"stopped at a frame that could not be read"``, ...), in that order.
+        names: the output names of every input, in input order (the videos stopped among the others: ``torchface
+            track``'s summary lists them in that order); empty where not given.
     """
 
     def __init__(
-        self, message: str, summaries: Sequence[VideoSummary], stopped: Sequence[str], reasons: Sequence[str] = ()
+        self, message: str, summaries: Sequence[VideoSummary], stopped: Sequence[str], reasons: Sequence[str] = (),
+        names: Sequence[str] = (),
     ) -> None:
         super().__init__(message)
         self.summaries = list(summaries)
         self.stopped = tuple(stopped)
         self.reasons = tuple(reasons) or (UNREADABLE_FRAME,) * len(self.stopped)
+        self.names = tuple(names)
 
 
 class _ReplayedTimeError(InputError):
@@ -2576,6 +2582,13 @@ def _open_input(
             warnings.warn(_worded(f"{path}: --fps {config.fps:g} not used for it: the video gives its own frame "
                                   f"rate, {reader.info.fps:g} frames/s, which its timestamps and overlay follow"),
                           UserWarning, stacklevel=2)  # fmt: skip
+        if reader.info.declared_fps is not None:  # (0.0005: its overlay could not be written at it)
+            low, high = PLAUSIBLE_FPS
+            other = "" if reader.info.fps_given else " (--fps gives another)"
+            warnings.warn(_worded(f"{path}: its container declares {reader.info.declared_fps:g} frames/s, not a "
+                                  f"plausible frame rate (one in ({low:g}, {high:g})): taken as none, its overlay and "
+                                  f"normalised videos at {reader.info.fps:g} frames/s{other}; the container's own "
+                                  "frame times are still the rows' timestamps"), UserWarning, stacklevel=2)  # fmt: skip
         frame = next(reader)
         lm = config.landmarks[k] if config.landmarks else None
         t0 = time.perf_counter()
@@ -2948,7 +2961,7 @@ def _track_opened(
         what = "; ".join(refused + ([unread] if unread else []))
         reasons = [getattr(s.error, "reason", UNREADABLE_FRAME) for s in failed]
         raise VideosStopped(f"{what}{rest}", [summaries[str(v)] for v in inputs if str(v) in summaries],
-                            [s.name for s in failed], reasons)  # fmt: skip
+                            [s.name for s in failed], reasons, [output_name(v) for v in inputs])  # fmt: skip
     return [summaries[str(v)] for v in inputs]
 
 
@@ -3306,7 +3319,8 @@ def _track_group(
         for s, code in zip(streams, cast(Tensor, result.start_failure).tolist()):  # (initialise's: always set)
             s.start_failure = StartFailure(code)
         # (a detector starts a failed stream afresh only with template management: managed_step's restart)
-        _warn_failed_starts(streams, detector is not None and config.tracker.template.enabled)
+        hints = [_swapped_fit_hint(model, config, intr, s, W, H) if s.replay is None else "" for s in streams]
+        _warn_failed_starts(streams, detector is not None and config.tracker.template.enabled, hints)
         if anchored:
             state = _with_recorded_offsets(state, list(anchored.items()))
         if online is not None and any(s.replay is not None and not s.retrack for s in streams):
@@ -3768,7 +3782,10 @@ def _finalise(
         "redetections": s.redetections,
         "detector_calls": s.detector_calls,
         "restart_failures": dict(sorted(s.restart_failures.items())),
-        "outputs": {k: str(v) for k, v in p.items() if k != "json" and (k != "meshes" or config.meshes)},
+        # (relative to the sidecar's own folder, where they lie: the run's --out as given, relative to its working
+        # folder, broke them when read from elsewhere or once the folder was moved; an earlier version's sidecar
+        # holds those, whose names are these: Path(json).parent / Path(path).name reads both)
+        "outputs": {k: v.name for k, v in p.items() if k != "json" and (k != "meshes" or config.meshes)},
         "videos": _video_timing(s),
     }
     # (its checkpoint, and a temporary one a SIGKILL cut off while it was written, before the JSON: a video killed
@@ -3839,21 +3856,53 @@ def _video_timing(s: _Stream) -> dict:
     }  # fmt: skip
 
 
-def _warn_failed_starts(streams: list[_Stream], restarts: bool) -> None:
+#: The largest roll (degrees, about the optical axis) of a fit of a failed start's landmarks with x and y swapped that
+#: :func:`_swapped_fit_hint` takes for the file's being written ``(y, x)``: an upright face's points written so fit
+#: upright once swapped, where a mirrored face's (a flipped frame's) fit a face rolled 90 degrees.
+SWAPPED_FIT_MAX_ROLL_DEG: float = 45.0
+
+
+def _swapped_fit_hint(model: FaceModel, config: JobConfig, intr: Intrinsics, s: _Stream, W: int, H: int) -> str:
+    """What the warning of a failed start adds where ``s``'s landmarks came from a file (not a detector), the start
+    failed as :attr:`~torchface.tracker.step.StartFailure.NO_POSE` (a mirrored face's points: a headerless CSV of
+    ``(y, x)`` pairs, ``(row, column)``, as they are written), and its points with x and y swapped lie in the
+    ``W x H`` frame and fit a pose (:func:`~torchface.tracker.fit.fit_landmarks`, the tracker's fit settings) of
+    a roll under :data:`SWAPPED_FIT_MAX_ROLL_DEG`: ``"; with x and y swapped ..."``; else ``""``. The landmarks are
+    not swapped: the file is the user's to mend. (A diagnosis only: the start, the rows, are as without it.)"""
+    if s.start_failure != StartFailure.NO_POSE or s.landmarks_source.startswith("detector:"):
+        return ""
+    swapped = np.ascontiguousarray(s.landmarks[:, ::-1])
+    given = swapped[np.isfinite(swapped).all(axis=1)]
+    if not len(given) or not ((given >= -0.5) & (given <= np.array([W - 0.5, H - 0.5]))).all():
+        return ""
+    lm = torch.as_tensor(swapped, dtype=model.dtype, device=model.device)[None]
+    fit = fit_landmarks(model, lm, intr, config=config.tracker.fit)
+    if int(fit.status[0]) == int(SolveStatus.FAILED):
+        return ""
+    roll = float(matrix_to_euler(fit.rotation.double())[0, 2])
+    if not abs(roll) < SWAPPED_FIT_MAX_ROLL_DEG:
+        return ""
+    return (f"; with x and y swapped its landmarks fit a pose: does {s.landmarks_source} hold (y, x) pairs, (row, "
+            "column)? Swap its columns, or give it a first line y,x, then track it again without --resume")
+
+
+def _warn_failed_starts(streams: list[_Stream], restarts: bool, hints: Sequence[str] = ()) -> None:
     """Warn (one line per video) where the start from the first frame's landmarks failed, with its reason
     (:attr:`_Stream.start_failure`, :class:`~torchface.tracker.step.StartFailure`: its name and
     :attr:`~torchface.tracker.step.StartFailure.reason`, such as landmarks that no face fits, a black first frame, a
     face mostly outside the frame): every row of that video was written unusable (``success`` 0) with nothing said
     but the summary's lost count, and the warning guessed the cause among them all. ``restarts``: a detector starts
     such a stream afresh (with template management only: without it, its rows stay unusable, and the warning said it
-    would be lost until the detector found a face)."""
-    for s in streams:
+    would be lost until the detector found a face). ``hints``: per stream, what its line adds
+    (:func:`_swapped_fit_hint`), or none."""
+    for s, hint in zip(streams, [*hints[: len(streams)], *[""] * (len(streams) - len(hints))]):
         if s.start_failure == StartFailure.NONE or s.replay is not None:  # (a resumed video's: said in its first run)
             continue
         then = ("it is lost until the detector finds a face it can start from" if restarts else
                 "every row is unusable (success 0): give the landmarks of a frame that shows the face")  # fmt: skip
-        warnings.warn(f"{s.name}: the start from the landmarks of frame {s.start} failed ({s.start_failure.name}): "
-                      f"{s.start_failure.reason}; {then}", RuntimeWarning, stacklevel=3)
+        warnings.warn(_worded(f"{s.name}: the start from the landmarks of frame {s.start} failed "
+                              f"({s.start_failure.name}): {s.start_failure.reason}; {then}{hint}"), RuntimeWarning,
+                      stacklevel=3)  # fmt: skip
 
 
 def _start_record(config: JobConfig, s: _Stream) -> dict:

@@ -288,7 +288,7 @@ def test_a_video_stopped_by_a_bad_frame_leaves_the_summary_of_the_others(clip, t
     assert "2.png: cannot decode this image" in captured.err
     assert "(good00, good01, good02, good03, good04, good05, good06, good07, good08, good09 and 1 more)" in captured.err
     lines = captured.out.splitlines()
-    assert [line.split(":")[0].strip() for line in lines[2:14]] == [p.stem for p in good] + ["broken"]
+    assert [line.split(":")[0].strip() for line in lines[2:14]] == [p.stem for p in inputs]  # (in input order)
     assert "good10: 2 frames" in captured.out and "broken: stopped at a frame that could not be read" in captured.out
     assert (out / "broken.csv.partial").is_file() and (out / "good10.json").is_file()
 
@@ -4217,3 +4217,47 @@ def test_a_focal_option_too_small_is_told_as_the_option_typed(clip, tmp_path, ca
     assert "Intrinsics" not in err
     _assert_clean_failure(main(args + ["--focal", "-5"]), capsys, tmp_path / "nothing",
                           "--focal must be a finite number > 0 (pixels), got -5.0")  # fmt: skip
+
+
+def test_the_sidecars_outputs_are_relative_to_its_own_folder(clip, tmp_path, monkeypatch):
+    """The sidecar's ``outputs`` are the files' names, relative to its own folder: they were the paths under ``--out``
+    as given (``res/clip.csv`` for a relative ``--out res``), relative to the run's working folder, which a script
+    reading the sidecar from elsewhere, or once the folder was moved, did not find."""
+    video, lm, _ = clip
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "run").mkdir()
+    monkeypatch.chdir(tmp_path / "run")
+    assert main(["track", str(video), "--out", "res", "--landmarks", str(lm), "--quiet", "--meshes",
+                 "--no-online-refine"]) == 0  # fmt: skip
+    moved = tmp_path / "elsewhere"
+    (tmp_path / "run" / "res").rename(moved)
+    side = json.loads((moved / f"{NAME}.json").read_text())
+    kinds = {k: v.name for k, v in output_paths(moved, NAME).items() if k != "json"}
+    assert side["outputs"] == kinds, side["outputs"]
+    for path in side["outputs"].values():
+        assert (moved / path).exists(), path
+
+
+def test_a_failed_start_whose_landmarks_fit_swapped_says_so(clip, tmp_path, capsys):
+    """Landmarks written ``(y, x)`` without a header (a mirrored face's points, as they are read) failed the start
+    (``NO_POSE``, status 3) with nothing said of the swap; the warning now says that with x and y swapped they fit a
+    pose, naming the file (not swapping them: the rows are as they were). A mirrored face's points (a flipped frame's)
+    fit a pose swapped too, but a face rolled about 90 degrees: not said for them."""
+    video, lm, _ = clip
+    points = np.loadtxt(lm, delimiter=",", skiprows=1)
+    swapped, mirrored = tmp_path / "swapped.csv", tmp_path / "mirrored.csv"
+    np.savetxt(swapped, points[:, ::-1], delimiter=",")
+    np.savetxt(mirrored, np.c_[W - 1 - points[:, 0], points[:, 1]], delimiter=",")
+    said = {}
+    for f in (swapped, mirrored):
+        assert main(["track", str(video), "--out", str(tmp_path / f.stem), "--landmarks", str(f), "--quiet",
+                     "--no-online-refine"]) == 3  # fmt: skip
+        err = capsys.readouterr().err
+        (said[f.stem],) = [x for x in err.splitlines() if "the start from the landmarks of frame 0 failed" in x]
+        assert "(NO_POSE)" in said[f.stem], err
+    assert said["swapped"].endswith(
+        f"; with x and y swapped its landmarks fit a pose: does {swapped} hold (y, x) pairs, (row, column)? Swap its "
+        "columns, or give it a first line y,x, then track it again without --resume"), said["swapped"]
+    assert "swapped" not in said["mirrored"], said["mirrored"]
+    side = json.loads((tmp_path / "swapped" / f"{NAME}.json").read_text())
+    assert side["start"]["failure"]["name"] == "NO_POSE"

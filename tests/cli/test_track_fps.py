@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import math
+import struct
 import sys
 from pathlib import Path
 
@@ -171,3 +172,53 @@ def test_resume_refuses_another_rate(clip, runs, tmp_path, capsys) -> None:
     for run, extra in (("f10", ["--fps", "10"]), ("plain", []), ("plain", ["--fps", "25"])):
         assert main([*args, "--out", str(runs[run]), *extra]) == 0
         assert "already complete" in capsys.readouterr().out
+
+
+def _slow_video(array: Path, path: Path, scale: int) -> Path:
+    """``array``'s frames as an MJPG AVI whose stream header declares ``1 / scale`` frames/s (OpenCV writes no rate
+    under 1 through MJPG, nor at 0.001 or less through FFmpeg: written at 0.5, then ``strh``'s ``dwScale`` set)."""
+    frames = np.load(array)
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 0.5, (W, H))
+    assert writer.isOpened()
+    for frame in frames:
+        writer.write(np.ascontiguousarray(frame[..., ::-1]))
+    writer.release()
+    data = bytearray(path.read_bytes())
+    at = data.find(b"strh") + 8  # (AVISTREAMHEADER: fccType, fccHandler, dwFlags, wPriority, wLanguage,
+    assert data[at : at + 4] == b"vids"  # dwInitialFrames, dwScale, dwRate)
+    assert struct.unpack("<II", data[at + 20 : at + 28]) == (2, 1)
+    data[at + 20 : at + 24] = struct.pack("<I", scale)
+    path.write_bytes(bytes(data))
+    return path
+
+
+def test_a_video_of_a_tiny_declared_rate_is_taken_as_rateless(clip, tmp_path, capsys) -> None:
+    """A container that declares 0.0005 frames/s (at most 0.001: its mp4v overlay could not be written at it, and
+    the run stopped with an error after its first rows) is taken as one with no plausible rate, as one over 1000 is:
+    25 frames/s (or ``--fps``'s) for its overlay and normalised videos, with a warning; its frames' own times are
+    still the rows' timestamps. A rate just over 0.001 is the video's own."""
+    array, _, lm = clip
+    slow = _slow_video(array, tmp_path / "slow.avi", 2000)
+    for name, extra, fps in (("plain", [], 25.0), ("f2", ["--fps", "2"], 2.0)):
+        out = tmp_path / name
+        assert main(["track", str(slow), "--out", str(out), "--landmarks", str(lm), "--quiet", *extra]) == 0
+        err = capsys.readouterr().err
+        other = "" if extra else " (--fps gives another)"
+        assert (f"torchface: warning: {slow}: its container declares 0.0005 frames/s, not a plausible frame rate "
+                f"(one in (0.001, 1000)): taken as none, its overlay and normalised videos at {fps:g} frames/s{other}; "
+                "the container's own frame times are still the rows' timestamps") in err.splitlines(), err  # fmt: skip
+        side = json.loads((out / "slow.json").read_text())
+        assert (side["input"]["fps"], side["input"]["fps_assumed"], side["input"]["fps_given"]) == (
+            fps, not extra, bool(extra))
+        assert side["videos"]["overlay"]["frames"] == side["videos"]["normalised"]["frames"] == T
+        for video in ("slow_overlay.mp4", "slow_normalised.mp4"):
+            assert _video_rate(out / video) == pytest.approx(fps, abs=1e-3), (name, video)
+        cols, rows = read_track_csv(out / "slow.csv")
+        np.testing.assert_allclose(rows[:, cols.index("timestamp")], np.arange(T) * 2000.0, rtol=0, atol=5e-4)
+    with open_frames(slow) as reader:  # (OpenCV reads the rate from it)
+        assert (reader.info.fps, reader.info.fps_assumed, reader.info.declared_fps) == (25.0, True, 0.0005)
+    with open_frames(slow, fps=2) as reader:  # (the reader's fps for it, and its declared rate kept)
+        assert (reader.info.fps, reader.info.fps_assumed, reader.info.fps_given) == (2.0, False, True)
+    with open_frames(_slow_video(array, tmp_path / "slow2.avi", 999)) as reader:  # (1.001e-3 frames/s: its own)
+        assert (reader.info.fps, reader.info.fps_assumed, reader.info.declared_fps) == (pytest.approx(1 / 999), False,
+                                                                                         None)  # fmt: skip

@@ -207,6 +207,28 @@ def test_track_videos_returns_a_summary_per_input_that_says_why(clip, tmp_path):
         JobConfig(out_dir=tmp_path, keep_going="yes")
 
 
+def test_without_keep_going_the_summary_lists_a_stopped_video_in_input_order(clip, tmp_path, capsys):
+    """A video stopped partway without ``--keep-going`` (``VideosStopped``, status 2) is listed in the summary in its
+    input's place, as with ``--keep-going`` (it was listed last, after the videos completed); ``VideosStopped.names``
+    holds every input's name in input order."""
+    frames, lm = clip
+    np.save(tmp_path / "good.npy", frames)
+    np.save(tmp_path / "last.npy", frames)
+    broken = _folder(frames, tmp_path / "broken", bad=2)
+    inputs = [tmp_path / "good.npy", broken, tmp_path / "last.npy"]
+    assert _track(inputs, [lm] * 3, tmp_path / "out") == 2
+    out = capsys.readouterr().out
+    lines = out.splitlines()
+    said = [line.split(":")[0].strip() for line in lines[lines.index("summary") + 1 :] if line.startswith("  ")
+            and not line.startswith("    ")]  # fmt: skip
+    assert said == ["good", "broken", "last"], out
+    assert "  broken: stopped at a frame that could not be read, not completed" in out
+    with pytest.raises(VideosStopped) as stopped:
+        track_videos(inputs, JobConfig(out_dir=tmp_path / "py", landmarks=(lm,) * 3, refine_first=None))
+    assert stopped.value.names == ("good", "broken", "last") and stopped.value.stopped == ("broken",)
+    assert [x.name for x in stopped.value.summaries] == ["good", "last"]
+
+
 def test_resume_retries_what_was_skipped_and_never_leaves_a_partial_output_looking_complete(clip, tmp_path, capsys):
     """``--resume --keep-going`` checks a skipped input again and tracks it once mended; a video stopped partway is
     resumed (and stops again) until its file is mended, then tracked afresh (its rows were made from the file as it

@@ -256,6 +256,39 @@ def test_ibug_pts_files_are_read_one_based(tmp_path):
         assert np.array_equal(read_landmarks(tmp_path / name, 100, 100), pts), name
 
 
+def test_a_pts_file_written_zero_based_is_told_so_where_it_shows(tmp_path):
+    """A ``.pts`` written 0-based (its top-left pixel's centre at (0, 0)) with a point at a coordinate under 0.5
+    (0: the first column or row) is refused saying the file looks 0-based and what to do (it was refused as a point
+    "outside the frame at (-1.0, ...)", without a word of ``.pts``' 1-based convention); one whose points all lie at
+    0.5 or more cannot be told, and reads 1-based. A point truly outside the frame (also read 0-based), normalised
+    coordinates and another count are refused as before."""
+    pts = _dyadic_points()
+    pts[5] = [0.0, 37.0]
+    (tmp_path / "zero.pts").write_text(_pts_text(pts - 1))  # (the 0-based points as they are: 0 in the file)
+    with pytest.raises(InputError) as info:
+        read_landmarks(tmp_path / "zero.pts", 100, 100)
+    assert str(info.value) == (
+        f"{tmp_path / 'zero.pts'}: 1 point left of or above the 100x100 frame as a .pts is read, 1-based (the top-left "
+        "pixel's centre at (1, 1): 1 is subtracted), e.g. (0.0, 37.0) in the file, but every point inside it as "
+        "written: is the file 0-based (the top-left pixel's centre at (0, 0), as OpenCV counts)? Add 1 to its "
+        "coordinates, or save the points as a CSV (x,y), read as they are"), info.value  # fmt: skip
+    inside = _dyadic_points()
+    (tmp_path / "inside.pts").write_text(_pts_text(inside))
+    assert np.array_equal(read_landmarks(tmp_path / "inside.pts", 100, 100), inside)
+    out = pts.copy()
+    out[9] = [-3.0, 40.0]  # (outside read either way)
+    (tmp_path / "out.pts").write_text(_pts_text(out - 1))
+    with pytest.raises(InputError, match=r"landmark\(s\) outside the 100x100 frame") as info:
+        read_landmarks(tmp_path / "out.pts", 100, 100)
+    assert "0-based" not in str(info.value)
+    (tmp_path / "unit.pts").write_text(_pts_text(_dyadic_points() / 100 - 1))  # (normalised, as written)
+    with pytest.raises(InputError, match="outside the 100x100 frame"):
+        read_landmarks(tmp_path / "unit.pts", 100, 100)
+    (tmp_path / "short.pts").write_text(_pts_text(pts[:60] - 1))
+    with pytest.raises(InputError, match="expected 68 iBUG landmarks, got 60"):
+        read_landmarks(tmp_path / "short.pts", 100, 100)
+
+
 def test_pts_coordinates_lose_one_exactly_in_decimal(tmp_path):
     """``1.1`` in a ``.pts`` is the ``0.1`` a CSV would hold (float ``1.1 - 1`` is 0.10000000000000009)."""
     pts = _dyadic_points()

@@ -27,7 +27,10 @@ Accepted layouts (pixel coordinates ``(u, v)``, pixel centres at integers, :mod:
   ``x y``, ``}``), read when the name ends in ``.pts`` or the file starts with ``version:`` / ``n_points:``. Its
   coordinates are 1-based (Matlab's convention, the top-left pixel's centre at ``(1, 1)``, as menpo and the 300-W
   tools read them), so 1 is subtracted: a ``.pts`` point ``(1, 1)`` is torchface's ``(0, 0)``, the same pixel
-  centre; the subtraction is exact in decimal, so ``x`` in a ``.pts`` reads as ``x - 1`` written in a CSV does;
+  centre; the subtraction is exact in decimal, so ``x`` in a ``.pts`` reads as ``x - 1`` written in a CSV does.
+  A file written 0-based whose points lie inside the frame as written but some left of or above it read 1-based (a
+  coordinate under 0.5) is refused, saying it looks 0-based (:func:`_zero_based_pts_problem`); one whose points
+  all lie at 0.5 or more cannot be told, and is read 1-based;
 - NPY: an array of shape ``(68, 2)``, ``(1, 68, 2)`` or ``(136,)`` (``x0, y0, x1, y1, ...``, as every flat form is
   read; one evidently all x then all y is refused: :func:`planar_layout_problem`);
 - JSON (``.json``): a list of 68 ``[x, y]`` pairs (or of 136 numbers ``x0, y0, x1, ...``; or one frame's pairs
@@ -290,6 +293,34 @@ def _is_pts(p: Path, text: str) -> bool:
     ``n_points:``."""
     first = next((line.strip() for line in text.splitlines() if line.strip()), "")
     return p.suffix.lower() == ".pts" or re.match(r"(version|n_points)\s*:", first.lower()) is not None
+
+
+def _zero_based_pts_problem(points: np.ndarray, width: int, height: int, count: int) -> str | None:
+    """Why a ``.pts`` file's ``points`` (``(K, 2)``, 1 already subtracted: :func:`_parse_pts`) look written
+    0-based, or None: some of its points lie left of or above a ``width x height`` frame read 1-based, as ``.pts``
+    is (a coordinate under 0.5 in the file: 0, as OpenCV counts its first pixel), and every point lies in it read
+    0-based, as written. Such a file was refused as points outside the frame, without a word of the convention; one
+    whose points all lie at 0.5 or more cannot be told from a 1-based one, and is read 1-based. ``count``: the
+    points expected (another count, or normalised coordinates, are refused as such by :func:`check_landmarks`)."""
+    if points.shape != (count, 2):
+        return None
+    given = points[np.isfinite(points).all(axis=1)]
+    low, high = NORMALISED_LANDMARK_RANGE
+    written = given + 1
+    if not len(given) or (((written >= low) & (written <= high)).all()
+                          and np.ptp(written, axis=0).max() <= NORMALISED_LANDMARK_MAX_SPAN):  # fmt: skip
+        return None
+    u, v = given[:, 0], given[:, 1]
+    before = (u < -0.5) | (v < -0.5)  # (read 1-based: left of or above the frame)
+    as_written = (u + 1 >= -0.5) & (u + 1 <= width - 0.5) & (v + 1 >= -0.5) & (v + 1 <= height - 0.5)
+    if not before.any() or not as_written.all():
+        return None
+    k = int(np.flatnonzero(before)[0])
+    x, y = (_coordinate(c + 1, side) for c, side in ((given[k, 0], width), (given[k, 1], height)))
+    return (f"{counted(int(before.sum()), 'point')} left of or above the {width}x{height} frame as a .pts is read, "
+            f"1-based (the top-left pixel's centre at (1, 1): 1 is subtracted), e.g. ({x}, {y}) in the file, but "
+            "every point inside it as written: is the file 0-based (the top-left pixel's centre at (0, 0), as OpenCV "
+            "counts)? Add 1 to its coordinates, or save the points as a CSV (x,y), read as they are")
 
 
 def _parse_pts(p: Path, text: str, count: int = NUM_LANDMARKS) -> np.ndarray:
@@ -881,4 +912,7 @@ def read_landmarks(
         else:
             points = _parse_pts(p, text, count) if pts else _parse_csv(p, text, count)
             missing_as = "a line 'nan nan'" if pts else "empty cells or nan"
+            zero_based = _zero_based_pts_problem(points, width, height, count) if pts else None
+            if zero_based is not None:
+                raise InputError(f"{p}: {zero_based}")
     return check_landmarks(points, width, height, str(p), missing=missing, missing_as=missing_as, count=count)

@@ -61,6 +61,7 @@ __all__ = [
     "image_files",
     "MIN_SIZE",
     "ASSUMED_FPS",
+    "PLAUSIBLE_FPS",
     "FrameReader",
     "VideoInfo",
     "array_convert_hint",
@@ -79,6 +80,11 @@ VIDEO_SUFFIXES: tuple[str, ...] = (
 )
 #: Smallest accepted frame side in pixels (the tracker's coarsest pyramid level needs a few pixels).
 MIN_SIZE: int = 32
+#: The frame rates (frames per second, open interval) a video container may declare as its own: outside it a rate is
+#: taken as none (:class:`VideoInfo`'s ``fps_assumed``, its ``declared_fps`` the rate declared): from 1000 frames/s up
+#: the CSV's millisecond timestamps of two rows could coincide, and at 0.001 or less (a frame every 1000 s: a broken
+#: header, or a time-lapse's) OpenCV's ``mp4v`` writer cannot write the overlay and normalised videos at it.
+PLAUSIBLE_FPS: tuple[float, float] = (0.001, 1000.0)
 #: The frame rate of an input that has none of its own (an image folder, an array, a single image, a container without
 #: a plausible rate; :class:`VideoInfo`'s ``fps_assumed``), frames per second, unless :func:`open_frames` is given one.
 ASSUMED_FPS: float = 25.0
@@ -135,10 +141,13 @@ class VideoInfo:
         conversion: what ``convert=True`` did to it, e.g. ``"uint16 gray -> uint8-range RGB; cropped 159x119 to
             158x118"``; empty when the frames are used as stored.
         fps_assumed: True when ``fps`` is the default 25, not the input's: image folders, arrays, a single image
-            file, and videos whose container gives no frame rate or one outside (0, 1000) frames/s; False where
-            :func:`open_frames`' ``fps`` gave their rate (``fps_given``).
+            file, and videos whose container gives no frame rate or one outside :data:`PLAUSIBLE_FPS`, (0.001, 1000)
+            frames/s; False where :func:`open_frames`' ``fps`` gave their rate (``fps_given``).
         fps_given: True when ``fps`` is the rate :func:`open_frames` was given for such an input (``torchface track
             --fps``), False where it is the input's own or the default 25.
+        declared_fps: the rate a video's container declares where it is not taken, being outside
+            :data:`PLAUSIBLE_FPS` (e.g. ``0.0005``: ``fps`` is then 25 or the one given); None where the container
+            declares none, where its rate is taken, and for image folders and arrays.
     """
 
     path: Path
@@ -151,6 +160,7 @@ class VideoInfo:
     conversion: str = ""
     fps_assumed: bool = False
     fps_given: bool = False
+    declared_fps: float | None = None
 
 
 def _layout(array: np.ndarray, where: str) -> np.ndarray:
@@ -664,12 +674,14 @@ def open_frames(path: str | os.PathLike[str], convert: bool = False, fps: float 
     conv = _conversion(stored, fmt, problems)
     rate = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
     count = float(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0.0)  # -1 or garbage (-1.9e14: a raw .mjpeg) when unknown
-    assumed = not (math.isfinite(rate) and 0 < rate < 1000)
+    assumed = not (math.isfinite(rate) and PLAUSIBLE_FPS[0] < rate < PLAUSIBLE_FPS[1])
+    implausible = rate if assumed and math.isfinite(rate) and rate > 0 else None  # (0 or -1: none declared)
     declared = int(count) if math.isfinite(count) and count >= 1 else None
     if p.suffix.lower() in IMAGE_SUFFIXES:  # one image, read as a video of one frame: FFmpeg's image demuxer gave
-        assumed, declared = True, 1  # 25 frames/s as the input's own (the JSON's fps_assumed false) and no count
+        assumed, declared, implausible = True, 1, None  # 25 frames/s as the input's own (the JSON's fps_assumed
+        # false) and no count
     rate = ASSUMED_FPS if assumed else rate
-    info = _given_rate(VideoInfo(p, "video", first.shape[-1], first.shape[-2], rate, declared, fmt, conv, assumed),
-                       fps)  # fmt: skip
+    info = _given_rate(VideoInfo(p, "video", first.shape[-1], first.shape[-2], rate, declared, fmt, conv, assumed,
+                                 declared_fps=implausible), fps)  # fmt: skip
     return FrameReader(info, first, _video_frames(cap), cap.release, stored_size=img.shape[:2], convert=convert,
                        clock=lambda: cap.get(cv2.CAP_PROP_POS_MSEC), first_image=first_image)  # fmt: skip
