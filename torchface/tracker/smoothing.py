@@ -84,6 +84,10 @@ class OneEuroConfig:
             are the signal's: rad/s for a rotation, mm/s for a translation, animation units per second).
             0 is a fixed low-pass at ``min_cutoff``.
         d_cutoff: the cutoff of the derivative's own low-pass, Hz (> 0).
+
+    These defaults (a fixed 1 Hz low-pass) are not :class:`SmoothingConfig`'s filters': to change one setting of
+    its default rotation filter, ``dataclasses.replace(SmoothingConfig().rotation, beta=30.0)`` (``OneEuroConfig(
+    beta=30.0)`` takes ``d_cutoff`` 1 Hz, not the rotation's 5).
     """
 
     min_cutoff: float = 1.0
