@@ -572,6 +572,10 @@ def test_times_are_checked_under_the_name_they_were_given() -> None:
         smooth_pose_series(R, t, ok[:, None].expand(2, 2), torch.ones(2, 2, dtype=torch.bool), SmoothingConfig())
     with pytest.raises(ValueError, match=r"time must be a \(2,\) tensor of seconds"):
         smooth_result(first, None, torch.zeros(3), SmoothingConfig())
+    for step in (one_euro_step, one_euro_rotation_step):  # the functional filters' time steps alike
+        x = R[:, 0] if step is one_euro_rotation_step else t[:, 0]
+        with pytest.raises(TypeError, match="dt must be real seconds, a number or a \\(2,\\) tensor, got a torch.bool"):
+            step(x, None, torch.tensor([True, True]), OneEuroConfig())
     # real seconds of any real dtype, and a list, are taken as before
     a = ResultSmoother()(first, timestamps=torch.tensor([0, 1]))
     b = ResultSmoother()(first, timestamps=[0.0, 1.0])

@@ -209,6 +209,8 @@ def _seconds(time: object, B: int, name: str, device: torch.device) -> Tensor:
 def _time_steps(dt: Tensor | float, B: int, like: Tensor) -> Tensor:
     if isinstance(dt, bool) or not isinstance(dt, (Tensor, int, float)):
         raise TypeError(f"dt must be seconds, a number or a ({B},) tensor, got {type(dt).__name__}")
+    if isinstance(dt, Tensor) and (dt.dtype == torch.bool or dt.is_complex()):  # (a bool one: 0 and 1 seconds)
+        raise TypeError(f"dt must be real seconds, a number or a ({B},) tensor, got a {dt.dtype} tensor")
     dt = torch.as_tensor(dt, dtype=like.dtype, device=like.device)
     if dt.dim() == 0:
         dt = dt.expand(B)
