@@ -212,7 +212,9 @@ def test_online_start_refuses_shape_settings_the_model_lacks_at_the_start(model)
     """``refine_first``'s ``shape_units`` (indices) and ``shape_prior_precision`` (one per unit) depend on the model:
     they were refused only at the re-anchoring frame (the fourth of this turn; frame 149 at most by default, or
     never), after the tracker had gone on that far, where a misspelt ``kept_shape_units`` was refused at the start.
-    Now the start refuses them, named as ``refine_first``'s, and tracks nothing."""
+    Now the start refuses them, named as ``refine_first``'s, and tracks nothing; ``lookahead_fit`` refuses them (and
+    a misspelt ``kept_shape_units``) before it tracks the frames ahead, named as its ``config``'s (where no keyframe
+    was found, as on these two frames, they were not refused at all)."""
     frames, gt = render([[0.0, 0.0, 0.0], [20.0, 0.0, 0.0]])
     frames = frames.float() / 255.0 if frames.dtype == torch.uint8 else frames.float()
     lm = gt.landmarks_px.float()
@@ -228,6 +230,12 @@ def test_online_start_refuses_shape_settings_the_model_lacks_at_the_start(model)
         with pytest.raises(ValueError, match=message):
             tracker.initialise(frames[:1], lm[:1], gt.intrinsics)
         assert tracker.state is None
+        # lookahead_fit: before it tracks the frames ahead (it refused them after up to max_frames of tracking)
+        with pytest.raises(ValueError, match=message.replace("refine_first", "config")):
+            lookahead_fit(model, CFG, frames[None], lm[:1], gt.intrinsics, config=LookaheadConfig(**bad))
+    with pytest.raises(ValueError, match=r"config.kept_shape_units \['Eyes vertical positon'\] are not among"):
+        lookahead_fit(model, CFG, frames[None], lm[:1], gt.intrinsics,
+                      config=LookaheadConfig(kept_shape_units=("Eyes vertical positon",)))
     # what the model has is taken: one precision per unit, the last unit's index
     initialise_managed(model, CFG, frames[:1], lm[:1], gt.intrinsics,
                        refine_first=LookaheadConfig(shape_units=(S - 1,), shape_prior_precision=(2.0,) * S))

@@ -982,6 +982,7 @@ def lookahead_fit(
     check_api_types(model, tracker_config, config_name="tracker_config")
     if not isinstance(config, LookaheadConfig):
         raise TypeError(f"config must be a LookaheadConfig, got {type(config).__name__}")
+    check_model_units(config, model, "config")  # (refine_first_fit's checks, before the frames are tracked ahead)
     if not isinstance(frames, Tensor):  # a numpy array was "must be (B, T, 3, H, W) ..., got (B, T, 3, H, W)"
         raise TypeError(f"frames must be a torch.Tensor (B, T, 3, H, W) float in [0, 1], got {type(frames).__name__}")
     if frames.dim() != 5 or frames.shape[1] < 2 or not frames.is_floating_point():  # uint8 went on as 0-255 floats
