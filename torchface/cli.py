@@ -268,13 +268,16 @@ def build_parser() -> argparse.ArgumentParser:
     track.add_argument("--meshes", action="store_true", help="also write one PLY mesh per frame")
     track.add_argument(
         "--lookahead", action="store_true",
-        help="refine the first frame's pose against the frames where the head turns 10 degrees to each side (one "
-        "side is enough; reads up to 150 frames ahead and keeps them in memory; torchface.tracker.lookahead)",
+        help="refine the first frame's pose, expression and the shape units the landmark fit held against the "
+        "frames where the head turns 10 degrees to each side (one side is enough; reads up to 150 frames ahead and "
+        "keeps them in memory; torchface.tracker.lookahead), then track from the first frame; instead of the online "
+        "start",
     )  # fmt: skip
     track.add_argument(
         "--no-online-refine", action="store_true",
         help="track without the online look-ahead start (on by default: once the head has turned 10 degrees, the "
-        "first pose and the shape units the landmark fit held are re-estimated from that view, in one pass)",
+        "first pose, its expression and the shape units the landmark fit held are re-estimated from that view, in "
+        "one pass)",
     )  # fmt: skip
     track.add_argument(
         "--restart-after-unmatched", type=_int_at_least(0), default=0, metavar="K",

@@ -181,8 +181,10 @@ from torchface.model.face_model import FaceModel
 from torchface.model.model_file import face_model_digest, load_face_model
 from torchface.normalise.face import NormalisedFace
 from torchface.solver.least_squares import SolveStatus
-from torchface.tracker.fit import LandmarkFit, check_model_landmarks, fit_landmarks
-from torchface.tracker.lookahead import LookaheadConfig, check_refine_first, lookahead_fit
+from torchface.tracker.fit import (
+    LandmarkFit, check_model_landmarks, fit_landmarks, held_shape_indices, shape_prior_vector,
+)  # fmt: skip
+from torchface.tracker.lookahead import LookaheadConfig, check_model_units, check_refine_first, lookahead_fit
 from torchface.tracker.managed import initialise_managed, managed_step
 from torchface.tracker.params import ParamLayout
 from torchface.tracker.smoothing import SmoothingConfig, SmoothingState, one_euro_rotation_step, one_euro_step
@@ -191,6 +193,7 @@ from torchface.tracker.step import (
     TrackerConfig,
     TrackerState,
     TrackStatus,
+    _unit_weights,
     pyramid_for_faces,
 )
 from torchface.visualise.overlay import axes_geometry, draw_overlay, mesh_edges, overlay_geometry
@@ -2735,6 +2738,7 @@ def track_videos(
             raise InputError(f"give one landmarks file per video: {counted(len(inputs), 'video')}, "
                              f"{counted(len(config.landmarks), 'file')}")
         model = _job_model(config)  # (checked before the detector is loaded and any input opened)
+        _check_settings_for_model(config, model)  # (before any output is touched)
         detector = None
         if config.detector is not None:
             from torchface.detect import load_detector
@@ -2849,6 +2853,30 @@ def _job_model(config: JobConfig) -> FaceModel:
             "--detector"
         )
     return model
+
+
+def _check_settings_for_model(config: JobConfig, model: FaceModel) -> None:
+    """Refuse the settings of ``config`` that name or count the face model's units where ``model`` (the job's) has no
+    such units: the tracker's ``expression_prior_weights`` (one per animation unit), its landmark fit's
+    ``held_shape_units`` and ``shape_prior_precision``, and the look-ahead's or online start's ``shape_units``,
+    ``kept_shape_units`` and ``shape_prior_precision``
+    (:func:`~torchface.tracker.lookahead.check_model_units`; the online start's only where it runs,
+    :func:`_online_start`). The tracker refuses them too, but only once a batch started (the online start's, the
+    look-ahead's, once it had read its frames ahead), after a fresh run had cleared the earlier run's outputs of
+    those videos: the error left ``.partial`` files where their complete outputs had been.
+
+    Raises:
+        ValueError: the first such setting, with the tracker's message.
+    """
+    tracker = config.tracker
+    _unit_weights(tracker, model.num_animation, torch.zeros(0))
+    held_shape_indices(tracker.fit, model.shape_names)
+    shape_prior_vector(tracker.fit.shape_prior_precision, model.num_shape, torch.float64, "cpu")
+    if config.lookahead is not None:
+        check_model_units(config.lookahead, model, "lookahead")
+    online = _online_start(config)
+    if online is not None:
+        check_model_units(online, model, "refine_first")
 
 
 def _track_locked(

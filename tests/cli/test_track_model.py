@@ -19,6 +19,7 @@ from torchface.job import JobConfig, output_paths, track_videos
 from torchface.model import FaceModel, face_model_digest, load_candide3, save_face_model
 from torchface.synth.scenarios import make_scenario
 from torchface.synth.sequence import load_ground_truth, write_sequence
+from torchface.tracker import FitConfig, LookaheadConfig, TrackerConfig
 
 T, W, H, NAME = 6, 160, 120, "expressions"
 #: The other model's landmarks: 26 of CANDIDE-3's 68 iBUG points (brows, nose, eyes, mouth), in this order.
@@ -172,6 +173,33 @@ def test_a_model_whose_landmarks_cannot_start_a_track_is_refused_up_front(clip, 
     with pytest.raises(InputError, match=r"three.npz: the model 'CANDIDE-3 v3.1.6' has 3 landmarks"):
         track_videos([video], JobConfig(out, landmarks=(tmp_path / "lm3.csv",), model=tmp_path / "three.npz"))
     assert not out.exists()
+
+
+def test_settings_of_another_models_units_are_refused_before_earlier_outputs_are_touched(clip, tmp_path):
+    """Settings that count or name the model's units (CANDIDE-3's 11 expression prior weights, a shape unit the
+    model lacks, one shape precision per unit) given with the 6-unit model's file, over the complete outputs of an
+    earlier run of it: refused before anything is touched. They were refused only once the batch had started (the
+    look-ahead's, after its frames were read ahead), after the fresh run had removed those outputs: a ValueError
+    left ``.csv.partial`` and ``.record.partial`` where the complete outputs had been."""
+    video, root = clip
+    config = JobConfig(tmp_path, landmarks=(root / "lm26.csv",), model=root / "other.npz")
+    track_videos([video], config)
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir() if p.is_file()}
+    S = load_candide3().num_shape
+    for bad, message in (
+        (dict(tracker=TrackerConfig(expression_prior_weights=(1.0,) * 11)),
+         "expression_prior_weights has 11 factors for a model with 6 animation units"),
+        (dict(tracker=TrackerConfig(fit=FitConfig(fit_expression=True, shape_prior_precision=(2.0,) * 6))),
+         f"shape_prior_precision has 6 values; the model has {S} shape units"),
+        (dict(refine_first=LookaheadConfig(shape_units=(S,))), f"refine_first.shape_units must be < {S}"),
+        (dict(lookahead=LookaheadConfig(shape_prior_precision=(2.0,) * 6)),
+         f"lookahead.shape_prior_precision has 6 values; the model has {S}"),
+    ):  # fmt: skip
+        with pytest.raises(ValueError, match=message):
+            track_videos([video], replace(config, **bad))
+        assert {p.name: p.read_bytes() for p in tmp_path.iterdir() if p.is_file()} == before, bad
+    # the online start's settings are not checked where it does not run (with --lookahead instead)
+    track_videos([video], replace(config, lookahead=LookaheadConfig(), refine_first=LookaheadConfig(shape_units=(S,))))
 
 
 def test_a_job_keeps_no_model_alive_after_it(clip, tmp_path):

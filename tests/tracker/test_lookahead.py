@@ -208,6 +208,39 @@ def test_kept_shape_units_stay_at_the_landmark_fits_values(model):
     assert LookaheadConfig(shape_units=(nose,)).kept_shape_units == ()
 
 
+def test_online_start_refuses_shape_settings_the_model_lacks_at_the_start(model):
+    """``refine_first``'s ``shape_units`` (indices) and ``shape_prior_precision`` (one per unit) depend on the model:
+    they were refused only at the re-anchoring frame (the fourth of this turn; frame 149 at most by default, or
+    never), after the tracker had gone on that far, where a misspelt ``kept_shape_units`` was refused at the start.
+    Now the start refuses them, named as ``refine_first``'s, and tracks nothing; ``lookahead_fit`` refuses them (and
+    a misspelt ``kept_shape_units``) before it tracks the frames ahead, named as its ``config``'s (where no keyframe
+    was found, as on these two frames, they were not refused at all)."""
+    frames, gt = render([[0.0, 0.0, 0.0], [20.0, 0.0, 0.0]])
+    frames = frames.float() / 255.0 if frames.dtype == torch.uint8 else frames.float()
+    lm = gt.landmarks_px.float()
+    S = model.num_shape
+    for bad, message in ((dict(shape_units=(0, S)), rf"refine_first.shape_units must be < {S}"),
+                         (dict(shape_prior_precision=(2.0,) * (S - 1)),
+                          rf"refine_first.shape_prior_precision has {S - 1} values; the model has {S}"),
+                         (dict(shape_units=(0, 1), shape_prior_precision=(2.0, 2.0)),
+                          r"refine_first.shape_prior_precision has 2 values")):  # fmt: skip
+        with pytest.raises(ValueError, match=message):
+            initialise_managed(model, CFG, frames[:1], lm[:1], gt.intrinsics, refine_first=LookaheadConfig(**bad))
+        tracker = FaceTracker(CFG, model=model, refine_first=LookaheadConfig(**bad))
+        with pytest.raises(ValueError, match=message):
+            tracker.initialise(frames[:1], lm[:1], gt.intrinsics)
+        assert tracker.state is None
+        # lookahead_fit: before it tracks the frames ahead (it refused them after up to max_frames of tracking)
+        with pytest.raises(ValueError, match=message.replace("refine_first", "config")):
+            lookahead_fit(model, CFG, frames[None], lm[:1], gt.intrinsics, config=LookaheadConfig(**bad))
+    with pytest.raises(ValueError, match=r"config.kept_shape_units \['Eyes vertical positon'\] are not among"):
+        lookahead_fit(model, CFG, frames[None], lm[:1], gt.intrinsics,
+                      config=LookaheadConfig(kept_shape_units=("Eyes vertical positon",)))
+    # what the model has is taken: one precision per unit, the last unit's index
+    initialise_managed(model, CFG, frames[:1], lm[:1], gt.intrinsics,
+                       refine_first=LookaheadConfig(shape_units=(S - 1,), shape_prior_precision=(2.0,) * S))
+
+
 def test_keyframe_expressions_keep_their_change_out_of_the_start(model):
     """Keyframes at +-20 degrees with the jaw dropped 0.6 after a neutral first frame (the render's face, true
     poses, exact landmarks). Untold, the refinement pulls the jaw the keyframes show into the starting

@@ -550,6 +550,38 @@ def test_result_smoother_timestamps_select_and_reset() -> None:
     assert by_fps.select([]).state.time.shape == (0,) and by_fps._frames.shape == (0,)  # (an empty list: no stream)
 
 
+def test_times_are_checked_under_the_name_they_were_given() -> None:
+    """``ResultSmoother``'s ``timestamps`` of the wrong shape were refused as ``time`` (``smooth_result``'s name for
+    them), a scalar without saying one per stream is needed; bool times, at any of the three entry points, were
+    taken as 0 and 1 seconds."""
+    R = random_rotations(2, 2, seed=14)
+    t = torch.zeros(2, 2, 3, dtype=D)
+    e = torch.zeros(2, 2, 11, dtype=D)
+    ok = torch.ones(2, dtype=torch.bool)
+    first = fake_result(R[:, 0], t[:, 0], e[:, 0], ok)
+    with pytest.raises(ValueError, match=r"timestamps must be a \(2,\) tensor of seconds, got shape \(\): one per "
+                                         r"stream, torch.full\(\(2,\), t\)"):  # fmt: skip
+        ResultSmoother()(first, timestamps=0.04)  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match=r"timestamps must be a \(2,\) tensor of seconds, got shape \(2, 1\)$"):
+        ResultSmoother()(first, timestamps=torch.zeros(2, 1))
+    with pytest.raises(TypeError, match="timestamps must be real seconds, a \\(2,\\) tensor, got a torch.bool tensor"):
+        ResultSmoother()(first, timestamps=torch.tensor([False, True]))
+    with pytest.raises(TypeError, match="time must be real seconds"):
+        smooth_result(first, None, torch.tensor([False, True]), SmoothingConfig())
+    with pytest.raises(TypeError, match="time must be real seconds"):
+        smooth_pose_series(R, t, ok[:, None].expand(2, 2), torch.ones(2, 2, dtype=torch.bool), SmoothingConfig())
+    with pytest.raises(ValueError, match=r"time must be a \(2,\) tensor of seconds"):
+        smooth_result(first, None, torch.zeros(3), SmoothingConfig())
+    for step in (one_euro_step, one_euro_rotation_step):  # the functional filters' time steps alike
+        x = R[:, 0] if step is one_euro_rotation_step else t[:, 0]
+        with pytest.raises(TypeError, match="dt must be real seconds, a number or a \\(2,\\) tensor, got a torch.bool"):
+            step(x, None, torch.tensor([True, True]), OneEuroConfig())
+    # real seconds of any real dtype, and a list, are taken as before
+    a = ResultSmoother()(first, timestamps=torch.tensor([0, 1]))
+    b = ResultSmoother()(first, timestamps=[0.0, 1.0])
+    assert torch.equal(a.rotation, b.rotation) and torch.equal(a.rotation, first.rotation)
+
+
 def test_smooth_result_restart_and_checks() -> None:
     R = random_rotations(2, 2, seed=13)
     t = torch.zeros(2, 2, 3, dtype=D)

@@ -198,6 +198,27 @@ def kept_shape_indices(
     return {i for i, n in enumerate(shape_names) if n in config.kept_shape_units}
 
 
+def check_model_units(config: LookaheadConfig, model: FaceModel, name: str = "refine_first") -> None:
+    """Refuse ``config``'s settings that name or count the model's shape units where ``model`` has no such units:
+    ``kept_shape_units`` (:func:`kept_shape_indices`), ``shape_units`` indices ``>= model.num_shape`` and a
+    ``shape_prior_precision`` tuple not one per shape unit; each named ``name.<setting>``. The online start
+    (:func:`~torchface.tracker.managed.initialise_managed`) calls it at the start: :func:`refine_first_fit` refuses
+    them too, but only once the head has turned, perhaps far into a video (frame 149 of the default
+    ``max_frames``) or never.
+
+    Raises:
+        ValueError: the first such setting, what the model has.
+    """
+    kept_shape_indices(config, model.shape_names, f"{name}.kept_shape_units")
+    S = model.num_shape
+    if config.shape_units is not None and any(s >= S for s in config.shape_units):
+        raise ValueError(f"{name}.shape_units must be < {S} (the model's shape units), got {config.shape_units}")
+    precision = config.shape_prior_precision
+    if isinstance(precision, tuple) and len(precision) != S:
+        raise ValueError(f"{name}.shape_prior_precision has {len(precision)} values; the model has {S} shape units "
+                         "(one value for all of them, or one per unit)")  # fmt: skip
+
+
 def levels_of(config: LookaheadConfig, num_levels: int) -> LookaheadConfig:
     """``config`` refining on at most ``num_levels`` pyramid levels (a tracker's
     :attr:`~torchface.tracker.step.TrackerConfig.num_levels`): its finest ones, ``iterations[-num_levels:]``.
@@ -961,6 +982,7 @@ def lookahead_fit(
     check_api_types(model, tracker_config, config_name="tracker_config")
     if not isinstance(config, LookaheadConfig):
         raise TypeError(f"config must be a LookaheadConfig, got {type(config).__name__}")
+    check_model_units(config, model, "config")  # (refine_first_fit's checks, before the frames are tracked ahead)
     if not isinstance(frames, Tensor):  # a numpy array was "must be (B, T, 3, H, W) ..., got (B, T, 3, H, W)"
         raise TypeError(f"frames must be a torch.Tensor (B, T, 3, H, W) float in [0, 1], got {type(frames).__name__}")
     if frames.dim() != 5 or frames.shape[1] < 2 or not frames.is_floating_point():  # uint8 went on as 0-255 floats

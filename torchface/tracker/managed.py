@@ -116,8 +116,8 @@ from torchface.tracker.fit import (
 )
 from torchface.tracker.inference import without_autograd
 from torchface.tracker.lookahead import (
-    LookaheadConfig, _refine_starts, _Start, _stream_start, check_refine_first, is_keyframe_turn, is_video_cut,
-    kept_shape_indices, landmark_fit_priors, levels_of, view_yaw_deg,
+    LookaheadConfig, _refine_starts, _Start, _stream_start, check_model_units, check_refine_first, is_keyframe_turn,
+    is_video_cut, landmark_fit_priors, levels_of, view_yaw_deg,
 )
 from torchface.tracker.params import ParamLayout
 from torchface.tracker.step import (
@@ -362,7 +362,8 @@ def initialise_managed(
     if refine_first is not None:
         if not config.template.enabled:
             raise ValueError("refine_first needs template management (config.template.enabled)")
-        kept_shape_indices(refine_first, model.shape_names, "refine_first.kept_shape_units")  # (now, not at the turn)
+        check_model_units(refine_first, model)  # (now, not at the turn: shape_units and shape_prior_precision were
+        # refused only at the re-anchoring frame, a tracker and a torchface track run that had gone on until then)
         if fit is None:
             check_initialise_inputs(model, config, frames, landmarks_px, intrinsics, weights)
             fit = fit_landmarks(model, landmarks_px, intrinsics, weights, config=config.fit)

@@ -77,7 +77,9 @@ class FaceTracker(DeviceCheckedModule):
     template management) is the online look-ahead start of :func:`~torchface.tracker.managed.initialise_managed`:
     once a stream's head has turned 10 degrees, its first pose, starting expression and the shape units the
     landmark fit held are re-estimated from that view (a one-off stall of about 0.4 s on a 2-core CPU) and the rest
-    of the stream is tracked from it. Measured with ``scripts/evaluate.py --noise-seeds 0,1,2,3``:
+    of the stream is tracked from it. It is read at :meth:`initialise`, whose state holds it: assigned mid-sequence
+    (``tracker.refine_first = None``), it applies from the next :meth:`initialise`, and a stream still waiting to
+    turn re-anchors as it was started to. Measured with ``scripts/evaluate.py --noise-seeds 0,1,2,3``:
     ``pose_sweep``'s mean error 0.14-0.19 degrees, ``scan_motion``'s max 2.7-3.3 (5.4-7.6 without the start,
     from the held landmark fit).
 

@@ -84,6 +84,10 @@ class OneEuroConfig:
             are the signal's: rad/s for a rotation, mm/s for a translation, animation units per second).
             0 is a fixed low-pass at ``min_cutoff``.
         d_cutoff: the cutoff of the derivative's own low-pass, Hz (> 0).
+
+    These defaults (a fixed 1 Hz low-pass) are not :class:`SmoothingConfig`'s filters': to change one setting of
+    its default rotation filter, ``dataclasses.replace(SmoothingConfig().rotation, beta=30.0)`` (``OneEuroConfig(
+    beta=30.0)`` takes ``d_cutoff`` 1 Hz, not the rotation's 5).
     """
 
     min_cutoff: float = 1.0
@@ -188,9 +192,25 @@ def _stream_mask(mask: Tensor | None, B: int, name: str, device: torch.device, d
     return mask.to(device)
 
 
+def _seconds(time: object, B: int, name: str, device: torch.device) -> Tensor:
+    """``time`` (a ``(B,)`` tensor or sequence of real seconds) as a float64 ``(B,)`` tensor on ``device``, else a
+    ``TypeError`` or ``ValueError`` naming the argument ``name`` (``ResultSmoother``'s ``timestamps`` was refused as
+    ``time``, and a bool one taken as 0 and 1 seconds)."""
+    if isinstance(time, bool) or (isinstance(time, Tensor) and (time.dtype == torch.bool or time.is_complex())):
+        got = f"a {time.dtype} tensor" if isinstance(time, Tensor) else "a bool"
+        raise TypeError(f"{name} must be real seconds, a ({B},) tensor, got {got}")
+    seconds = torch.as_tensor(time, dtype=torch.float64, device=device)
+    if tuple(seconds.shape) != (B,):
+        hint = f": one per stream, torch.full(({B},), t)" if seconds.dim() == 0 else ""
+        raise ValueError(f"{name} must be a ({B},) tensor of seconds, got shape {tuple(seconds.shape)}{hint}")
+    return seconds
+
+
 def _time_steps(dt: Tensor | float, B: int, like: Tensor) -> Tensor:
     if isinstance(dt, bool) or not isinstance(dt, (Tensor, int, float)):
         raise TypeError(f"dt must be seconds, a number or a ({B},) tensor, got {type(dt).__name__}")
+    if isinstance(dt, Tensor) and (dt.dtype == torch.bool or dt.is_complex()):  # (a bool one: 0 and 1 seconds)
+        raise TypeError(f"dt must be real seconds, a number or a ({B},) tensor, got a {dt.dtype} tensor")
     dt = torch.as_tensor(dt, dtype=like.dtype, device=like.device)
     if dt.dim() == 0:
         dt = dt.expand(B)
@@ -402,9 +422,7 @@ def smooth_result(
     if not isinstance(config, SmoothingConfig):
         raise TypeError(f"config must be a SmoothingConfig, got {type(config).__name__}")
     B = result.rotation.shape[0]
-    time = torch.as_tensor(time, dtype=torch.float64, device=result.rotation.device)
-    if tuple(time.shape) != (B,):
-        raise ValueError(f"time must be a ({B},) tensor of seconds, got shape {tuple(time.shape)}")
+    time = _seconds(time, B, "time", result.rotation.device)
     if state is not None and state.time.shape[0] != B:
         raise ValueError(f"the smoothing state holds {state.time.shape[0]} streams, the result {B}: select() the "
                          "state as the tracker's streams change, or reset it")  # fmt: skip
@@ -482,6 +500,8 @@ def smooth_pose_series(
             raise ValueError(f"{name} must be {shape}, got {getattr(x, 'shape', type(x).__name__)}")
     if success.dtype != torch.bool or any(x.dtype != torch.bool for _, x in masks):
         raise ValueError("success, restart and reanchored must be bool tensors")
+    if time.dtype == torch.bool or time.is_complex():  # (a bool series was taken as 0 and 1 seconds)
+        raise TypeError(f"time must be real seconds, got a {time.dtype} tensor")
     if reanchored is not None:  # (afresh at the frame after each re-anchoring step)
         after = torch.zeros_like(reanchored)
         after[:, 1:] = reanchored[:, :-1]
@@ -647,7 +667,7 @@ class ResultSmoother:
             self._frames = frames
             time = frames / self.fps
         else:
-            time = torch.as_tensor(timestamps, dtype=torch.float64, device=device)
+            time = _seconds(timestamps, B, "timestamps", device)  # (named as given: smooth_result says "time")
         restart = None if restart is None else _stream_mask(restart, B, "restart", device, False)
         if self._reanchoring is not None:  # (re-anchored in the last call's step: this result is the new estimate's)
             restart = self._reanchoring if restart is None else restart | self._reanchoring
