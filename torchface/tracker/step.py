@@ -514,7 +514,8 @@ def scale_floor(config: TrackerConfig, level: int) -> float:
 def stream_index(index: Sequence[int] | Tensor, batch: int, device: torch.device) -> Tensor:
     """``index``, stream indices (a list or integer tensor, negative ones from the end) or a ``(batch,)`` bool mask,
     as an int64 ``(B',)`` tensor of indices in ``[0, batch)`` on ``device`` (:meth:`TrackerState.select`,
-    :meth:`TrackResult.select`); a ``TypeError`` or ``IndexError`` naming what is wrong otherwise."""
+    :meth:`TrackResult.select`); a ``TypeError`` or ``IndexError`` naming what is wrong otherwise (a uint8 tensor,
+    which torch indexes with as a mask, is a ``TypeError``: ``.bool()`` for a mask, ``.long()`` for indices)."""
     B = batch
     # An empty list is no streams (torch.as_tensor([]) is float32: "stream indices must be integers").
     empty = isinstance(index, (list, tuple)) and not index
@@ -522,6 +523,10 @@ def stream_index(index: Sequence[int] | Tensor, batch: int, device: torch.device
         raise TypeError(f"index must be stream indices (a list or int64 tensor) or a ({B},) bool mask, "
                         f"got {type(index).__name__}")  # fmt: skip
     index = torch.as_tensor(index, device=device, dtype=torch.int64 if empty else None).reshape(-1)
+    if index.dtype == torch.uint8:  # torch indexes with it as a mask (deprecated), this took it for indices: a
+        # uint8 mask [1, 0, 1] kept streams 1, 0 and 1 without a word
+        raise TypeError(f"a uint8 index is ambiguous (torch takes it for a mask, deprecated): pass a ({B},) bool mask, "
+                        "index.bool(), or stream indices, index.long()")  # fmt: skip
     if index.dtype == torch.bool:  # a mask of the streams kept
         if index.numel() != B:
             raise IndexError(f"a stream mask must have {B} values (one per stream), got {index.numel()}")
