@@ -1270,6 +1270,38 @@ def fail_templates(templates: Sequence[Template], failed: Tensor) -> list[Templa
 
 
 @full_precision
+def check_given_fit(model: FaceModel, fit: LandmarkFit, batch: int) -> None:
+    """Refuse a :class:`~torchface.tracker.fit.LandmarkFit` handed to :func:`initialise` that is not ``batch``
+    streams' fit with ``model``: every field's shape (``rotation (B, 3, 3)``, ``shape_coeffs (B, S)``,
+    ``anim_coeffs (B, A)``, ...), a ``ValueError`` naming those that differ. A fit of another batch said "got batch
+    3" for one stream's fit without its batch dimension (``fit.select(b)``, its rotation's 3 rows), and one made with
+    another model (other animation units) was a bare RuntimeError of tensor sizes from inside."""
+    want = {
+        "rotation": (batch, 3, 3), "axis_angle": (batch, 3), "translation": (batch, 3),
+        "shape_coeffs": (batch, model.num_shape), "anim_coeffs": (batch, model.num_animation), "rms_px": (batch,),
+        "status": (batch,),
+    }  # fmt: skip
+    shapes = {n: tuple(v.shape) if isinstance(v, Tensor) else type(v).__name__ for n, v in vars(fit).items()}
+    wrong = [n for n in want if shapes.get(n) != want[n]]
+    if not wrong:
+        return
+    rotation = shapes.get("rotation")
+    if rotation == (3, 3):  # (its 3 rows were read as the batch: "got batch 3")
+        raise ValueError(f"fit must be a LandmarkFit of batch {batch}, got one stream's fit without its batch "
+                         "dimension, rotation (3, 3) (LandmarkFit.select of an int drops it; fit.select(slice(b, "
+                         "b + 1)) keeps it)")  # fmt: skip
+    if not isinstance(rotation, tuple) or len(rotation) != 3:
+        raise ValueError(f"fit must be a LandmarkFit of batch {batch}, got rotation {rotation}: (B, 3, 3) wanted")
+    if rotation[0] != batch:  # (said "got LandmarkFit", the right type)
+        raise ValueError(f"fit must be a LandmarkFit of batch {batch}, got batch {rotation[0]}")
+    units = all(n in ("shape_coeffs", "anim_coeffs") and shapes.get(n, ())[:1] == (batch,) for n in wrong)
+    raise ValueError(
+        f"fit must be a LandmarkFit of batch {batch} for this model ({model.num_shape} shape and "
+        f"{model.num_animation} animation units), got " + ", ".join(f"{n} {shapes.get(n)} for {want[n]}" for n in wrong)
+        + (": a fit made with another model? (fit_landmarks with the tracker's model)" if units else "")
+    )
+
+
 def initialise(
     model: FaceModel,
     config: TrackerConfig,
@@ -1310,9 +1342,8 @@ def initialise(
         fit = fit_landmarks(model, landmarks_px, intrinsics, weights, config=config.fit)
     elif not isinstance(fit, LandmarkFit):
         raise TypeError(f"fit must be a LandmarkFit of batch {frames.shape[0]} or None, got {type(fit).__name__}")
-    elif fit.rotation.shape[0] != frames.shape[0]:  # (said "got LandmarkFit", the right type)
-        raise ValueError(f"fit must be a LandmarkFit of batch {frames.shape[0]}, got batch {fit.rotation.shape[0]}")
     else:  # in the model's dtype and device, as fit_landmarks returns it
+        check_given_fit(model, fit, frames.shape[0])
         fit = fit.to(model.device, model.dtype)
     layout = _layout(model)
     B = frames.shape[0]
