@@ -131,7 +131,7 @@ def test_select_names_an_index_of_the_wrong_type(model, three_streams):
     tracker = FaceTracker(CFG, model, refine_first=None)
     tracker.initialise(frames[:, 0], lm)
     before = tracker.state
-    for bad in (None, slice(0, 2), "0"):
+    for bad in (None, slice(0, 2), "0", {0, 2}):  # (a set: torch's RuntimeError "Could not infer dtype of set")
         with pytest.raises(TypeError, match=r"index must be stream indices .* or a \(3,\) bool mask, got"):
             tracker.select(bad)  # type: ignore[arg-type]
         with pytest.raises(TypeError, match="index must be stream indices"):

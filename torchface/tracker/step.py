@@ -519,7 +519,8 @@ def stream_index(index: Sequence[int] | Tensor, batch: int, device: torch.device
     B = batch
     # An empty list is no streams (torch.as_tensor([]) is float32: "stream indices must be integers").
     empty = isinstance(index, (list, tuple)) and not index
-    if index is None or isinstance(index, (str, bytes, slice)):  # torch's "Could not infer dtype of NoneType"
+    # (torch's "Could not infer dtype of NoneType", of set: a set or dict has no order to keep the streams in)
+    if index is None or isinstance(index, (str, bytes, slice, set, frozenset, dict)):
         raise TypeError(f"index must be stream indices (a list or int64 tensor) or a ({B},) bool mask, "
                         f"got {type(index).__name__}")  # fmt: skip
     index = torch.as_tensor(index, device=device, dtype=torch.int64 if empty else None).reshape(-1)
