@@ -435,6 +435,9 @@ def test_bad_inputs_raise(model):
     for bad in (torch.ones(1, 68).numpy(), [[1.0] * 68]):
         with pytest.raises(TypeError, match=r"weights must be a \(1, 68\) tensor or None"):
             fit_landmarks(model, lm, CAM, bad)  # type: ignore[arg-type]
+    # (complex weights were torch's NotImplementedError '"lt_cpu" not implemented for 'ComplexFloat'')
+    with pytest.raises(TypeError, match=r"^weights must be real numbers >= 0 .*, got torch.complex64"):
+        fit_landmarks(model, lm, CAM, torch.ones(1, 68, dtype=torch.complex64))
     with pytest.raises(TypeError, match="intrinsics must be"):
         fit_landmarks(model, lm, None)  # type: ignore[arg-type]
     for bad in (None, {"mean": 1}):  # (an AttributeError: 'NoneType' object has no attribute 'num_landmarks')

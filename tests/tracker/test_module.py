@@ -131,12 +131,29 @@ def test_select_names_an_index_of_the_wrong_type(model, three_streams):
     tracker = FaceTracker(CFG, model, refine_first=None)
     tracker.initialise(frames[:, 0], lm)
     before = tracker.state
-    for bad in (None, slice(0, 2), "0"):
+    for bad in (None, slice(0, 2), "0", {0, 2}):  # (a set: torch's RuntimeError "Could not infer dtype of set")
         with pytest.raises(TypeError, match=r"index must be stream indices .* or a \(3,\) bool mask, got"):
             tracker.select(bad)  # type: ignore[arg-type]
         with pytest.raises(TypeError, match="index must be stream indices"):
             before.select(bad)  # type: ignore[arg-type]
     assert tracker.state is before
+
+
+def test_select_refuses_a_uint8_index_torch_takes_for_a_mask(model, three_streams):
+    """A uint8 tensor (``mask.to(torch.uint8)``, a NumPy uint8 array) is a mask to torch's indexing (deprecated) but
+    was taken for stream indices: ``[1, 0, 1]`` kept streams 1, 0 and 1 of the tracker, its state and a result, without
+    a word. It is a TypeError saying ``.bool()`` or ``.long()``; the state is left as it was."""
+    frames, lm = three_streams
+    tracker = FaceTracker(CFG, model, refine_first=None)
+    result = tracker.initialise(frames[:, 0], lm)
+    before = tracker.state
+    for bad in (torch.tensor([1, 0, 1], dtype=torch.uint8), torch.tensor([1, 0, 1]).numpy().astype("uint8")):
+        with pytest.raises(TypeError, match=r"uint8 .* index\.bool\(\), or stream indices, index\.long\(\)"):
+            tracker.select(bad)  # type: ignore[arg-type]
+        with pytest.raises(TypeError, match="uint8"):
+            result.select(bad)  # type: ignore[arg-type]
+    assert tracker.state is before
+    assert tracker.select(torch.tensor([1, 0, 1]).bool()).state.params.shape[0] == 2
 
 
 def test_result_select_is_each_fields_rows(model, three_streams):

@@ -582,6 +582,40 @@ def test_times_are_checked_under_the_name_they_were_given() -> None:
     assert torch.equal(a.rotation, b.rotation) and torch.equal(a.rotation, first.rotation)
 
 
+def test_result_smoother_select_checks_its_index_as_the_tracker_does() -> None:
+    """``ResultSmoother.select`` (and ``SmoothingState.select``) take stream indices as ``FaceTracker.select`` does:
+    a 0-d index kept the stream without its batch dimension (the next call failed with "tuple index out of range"
+    where the tracker's own select kept a batch of one), a uint8 mask was taken as a mask where the tracker took it for
+    indices, and an index out of range, a mask of another length, None or a slice were torch's errors. A bad index
+    leaves the smoother as it was."""
+    B, T = 3, 3
+    R = random_rotations(B, T, seed=15)
+    t = torch.zeros(B, T, 3, dtype=D)
+    e = torch.zeros(B, T, 11, dtype=D)
+    ok = torch.ones(B, dtype=torch.bool)
+    smoother, alone = ResultSmoother(fps=FPS), ResultSmoother(fps=FPS)
+    for k in range(T - 1):
+        smoother(fake_result(R[:, k], t[:, k], e[:, k], ok))
+        alone(fake_result(R[1:2, k], t[1:2, k], e[1:2, k], ok[1:2]))
+    before = smoother.state
+    for bad, error, match in (
+        ([3], IndexError, "out of range for 3 streams"),
+        (torch.tensor([True, False]), IndexError, "must have 3 values"),
+        (None, TypeError, "index must be stream indices"), (slice(0, 1), TypeError, "index must be stream indices"),
+        (torch.tensor([0, 1, 0], dtype=torch.uint8), TypeError, "uint8"),
+    ):  # fmt: skip
+        with pytest.raises(error, match=match):
+            smoother.select(bad)  # type: ignore[arg-type]
+        with pytest.raises(error, match=match):
+            before.select(bad)  # type: ignore[arg-type]
+    assert smoother.state is before and smoother._frames.shape == (3,)
+    assert before.select(torch.tensor(1)).time.shape == (1,)
+    smoother.select(torch.tensor(1))  # a 0-d index: a batch of one, as FaceTracker.select keeps it
+    assert smoother.state.time.shape == (1,) and smoother._frames.shape == (1,)
+    x = fake_result(R[1:2, -1], t[1:2, -1], e[1:2, -1], ok[1:2])
+    assert torch.equal(smoother(x).rotation, alone(x).rotation)
+
+
 def test_smooth_result_restart_and_checks() -> None:
     R = random_rotations(2, 2, seed=13)
     t = torch.zeros(2, 2, 3, dtype=D)

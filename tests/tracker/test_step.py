@@ -1494,6 +1494,15 @@ def test_the_functional_steps_name_a_model_config_or_state_of_another_type(model
     one = fit_landmarks(model, landmarks_of(gts)[:1], cam)
     with pytest.raises(ValueError, match="fit must be a LandmarkFit of batch 2, got batch 1"):
         initialise(model, L2, frames[:, 0], landmarks_of(gts), cam, fit=one)
+    # One stream's fit without its batch dimension (LandmarkFit.select of an int) was "got batch 3", its rotation's
+    # rows; a fit made with another model (other animation units) a bare RuntimeError of tensor sizes from inside.
+    with pytest.raises(ValueError, match=r"batch 1, got one stream's fit without its batch dimension, rotation"):
+        initialise(model, L2, frames[:1, 0], landmarks_of(gts)[:1], cam, fit=one.select(0))
+    fewer = replace(model, animation_units=model.animation_units[:8], animation_names=model.animation_names[:8],
+                    animation_ranges=model.animation_ranges[:8], facs_matrix=model.facs_matrix[:, :8])  # fmt: skip
+    other = fit_landmarks(fewer, landmarks_of(gts), cam)
+    with pytest.raises(ValueError, match=r"anim_coeffs \(2, 8\) for \(2, 11\): a fit made with another model"):
+        initialise(model, L2, frames[:, 0], landmarks_of(gts), cam, fit=other)
 
 
 _COMPILED_STEP = """

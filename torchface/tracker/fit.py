@@ -463,6 +463,8 @@ def check_landmark_values(
         raise ValueError(f"{name}: {problem}")
     if weights is None or weights.dtype == torch.bool:
         return
+    if weights.is_complex():  # (torch's NotImplementedError '"lt_cpu" not implemented for 'ComplexFloat'')
+        raise TypeError(f"{weights_name} must be real numbers >= 0 (landmark confidences), got {weights.dtype}")
     w = weights.detach()
     bad = w < 0
     if w.is_floating_point():

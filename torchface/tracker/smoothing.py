@@ -57,7 +57,7 @@ from torch import Tensor
 from torchface.geometry._checks import check_number
 from torchface.geometry.so3 import axis_angle_to_matrix, matrix_to_axis_angle, matrix_to_euler
 from torchface.model.face_model import FaceModel
-from torchface.tracker.step import TrackerState, TrackResult
+from torchface.tracker.step import TrackerState, TrackResult, stream_index
 
 __all__ = [
     "OneEuroConfig",
@@ -352,16 +352,6 @@ def one_euro_rotation_step(
     return _filter(R, state, dt, config, valid, restart, eye, _rotation_difference, _rotation_advance)
 
 
-def _stream_index(index: Sequence[int] | Tensor, device: torch.device) -> Tensor:
-    """Stream indices ``index`` (a list, or an int64 tensor; or a ``(B,)`` bool mask) as a tensor on ``device``
-    (an empty list: no stream)."""
-    index = torch.as_tensor(index, device=device,
-                            dtype=torch.int64 if isinstance(index, (list, tuple)) and not index else None)
-    if index.dtype != torch.bool and (index.is_floating_point() or index.is_complex()):
-        raise TypeError(f"stream indices must be integers, got {index.dtype}")
-    return index
-
-
 @dataclass(frozen=True, eq=False)
 class SmoothingState:
     """:func:`smooth_result`'s state after a frame.
@@ -382,7 +372,9 @@ class SmoothingState:
     def select(self, index: Sequence[int] | Tensor) -> "SmoothingState":
         """The state of streams ``index`` (``(B',)`` stream indices, a list or int64 tensor; or a ``(B,)`` bool
         mask), as :meth:`TrackerState.select <torchface.tracker.TrackerState.select>` keeps them."""
-        index = _stream_index(index, self.time.device)
+        # (as TrackerState.select checks them: a 0-d index dropped the batch dimension, an index out of range, a
+        # mask of another length, None or a slice were torch's errors, a uint8 mask was taken for indices)
+        index = stream_index(index, int(self.time.shape[0]), self.time.device)
 
         def pick(s: OneEuroState | None) -> OneEuroState | None:
             return None if s is None else s.select(index)
@@ -622,14 +614,15 @@ class ResultSmoother:
         returns the smoother."""
         if self._state is None:
             raise RuntimeError("the smoother holds no streams yet: nothing to select")
-        self._state = self._state.select(index)
+        rows = stream_index(index, int(self._state.time.shape[0]), torch.device("cpu"))  # (checked before any change)
+        self._state = self._state.select(rows)
         if self._frames is not None:
-            self._frames = self._frames[_stream_index(index, self._frames.device)]
+            self._frames = self._frames[rows.to(self._frames.device)]
         if self._offsets is not None:
-            rows = _stream_index(index, self._offsets[0].device)
-            self._offsets = (self._offsets[0][rows], self._offsets[1][rows])
+            self._offsets = (self._offsets[0][rows.to(self._offsets[0].device)],
+                             self._offsets[1][rows.to(self._offsets[1].device)])  # fmt: skip
         if self._reanchoring is not None:
-            self._reanchoring = self._reanchoring[_stream_index(index, self._reanchoring.device)]
+            self._reanchoring = self._reanchoring[rows.to(self._reanchoring.device)]
         return self
 
     def _reanchored(self, state: TrackerState, B: int, device: torch.device) -> Tensor:

@@ -514,14 +514,20 @@ def scale_floor(config: TrackerConfig, level: int) -> float:
 def stream_index(index: Sequence[int] | Tensor, batch: int, device: torch.device) -> Tensor:
     """``index``, stream indices (a list or integer tensor, negative ones from the end) or a ``(batch,)`` bool mask,
     as an int64 ``(B',)`` tensor of indices in ``[0, batch)`` on ``device`` (:meth:`TrackerState.select`,
-    :meth:`TrackResult.select`); a ``TypeError`` or ``IndexError`` naming what is wrong otherwise."""
+    :meth:`TrackResult.select`); a ``TypeError`` or ``IndexError`` naming what is wrong otherwise (a uint8 tensor,
+    which torch indexes with as a mask, is a ``TypeError``: ``.bool()`` for a mask, ``.long()`` for indices)."""
     B = batch
     # An empty list is no streams (torch.as_tensor([]) is float32: "stream indices must be integers").
     empty = isinstance(index, (list, tuple)) and not index
-    if index is None or isinstance(index, (str, bytes, slice)):  # torch's "Could not infer dtype of NoneType"
+    # (torch's "Could not infer dtype of NoneType", of set: a set or dict has no order to keep the streams in)
+    if index is None or isinstance(index, (str, bytes, slice, set, frozenset, dict)):
         raise TypeError(f"index must be stream indices (a list or int64 tensor) or a ({B},) bool mask, "
                         f"got {type(index).__name__}")  # fmt: skip
     index = torch.as_tensor(index, device=device, dtype=torch.int64 if empty else None).reshape(-1)
+    if index.dtype == torch.uint8:  # torch indexes with it as a mask (deprecated), this took it for indices: a
+        # uint8 mask [1, 0, 1] kept streams 1, 0 and 1 without a word
+        raise TypeError(f"a uint8 index is ambiguous (torch takes it for a mask, deprecated): pass a ({B},) bool mask, "
+                        "index.bool(), or stream indices, index.long()")  # fmt: skip
     if index.dtype == torch.bool:  # a mask of the streams kept
         if index.numel() != B:
             raise IndexError(f"a stream mask must have {B} values (one per stream), got {index.numel()}")
@@ -1265,6 +1271,38 @@ def fail_templates(templates: Sequence[Template], failed: Tensor) -> list[Templa
 
 
 @full_precision
+def check_given_fit(model: FaceModel, fit: LandmarkFit, batch: int) -> None:
+    """Refuse a :class:`~torchface.tracker.fit.LandmarkFit` handed to :func:`initialise` that is not ``batch``
+    streams' fit with ``model``: every field's shape (``rotation (B, 3, 3)``, ``shape_coeffs (B, S)``,
+    ``anim_coeffs (B, A)``, ...), a ``ValueError`` naming those that differ. A fit of another batch said "got batch
+    3" for one stream's fit without its batch dimension (``fit.select(b)``, its rotation's 3 rows), and one made with
+    another model (other animation units) was a bare RuntimeError of tensor sizes from inside."""
+    want = {
+        "rotation": (batch, 3, 3), "axis_angle": (batch, 3), "translation": (batch, 3),
+        "shape_coeffs": (batch, model.num_shape), "anim_coeffs": (batch, model.num_animation), "rms_px": (batch,),
+        "status": (batch,),
+    }  # fmt: skip
+    shapes = {n: tuple(v.shape) if isinstance(v, Tensor) else type(v).__name__ for n, v in vars(fit).items()}
+    wrong = [n for n in want if shapes.get(n) != want[n]]
+    if not wrong:
+        return
+    rotation = shapes.get("rotation")
+    if rotation == (3, 3):  # (its 3 rows were read as the batch: "got batch 3")
+        raise ValueError(f"fit must be a LandmarkFit of batch {batch}, got one stream's fit without its batch "
+                         "dimension, rotation (3, 3) (LandmarkFit.select of an int drops it; fit.select(slice(b, "
+                         "b + 1)) keeps it)")  # fmt: skip
+    if not isinstance(rotation, tuple) or len(rotation) != 3:
+        raise ValueError(f"fit must be a LandmarkFit of batch {batch}, got rotation {rotation}: (B, 3, 3) wanted")
+    if rotation[0] != batch:  # (said "got LandmarkFit", the right type)
+        raise ValueError(f"fit must be a LandmarkFit of batch {batch}, got batch {rotation[0]}")
+    units = all(n in ("shape_coeffs", "anim_coeffs") and shapes.get(n, ())[:1] == (batch,) for n in wrong)
+    raise ValueError(
+        f"fit must be a LandmarkFit of batch {batch} for this model ({model.num_shape} shape and "
+        f"{model.num_animation} animation units), got " + ", ".join(f"{n} {shapes.get(n)} for {want[n]}" for n in wrong)
+        + (": a fit made with another model? (fit_landmarks with the tracker's model)" if units else "")
+    )
+
+
 def initialise(
     model: FaceModel,
     config: TrackerConfig,
@@ -1305,9 +1343,8 @@ def initialise(
         fit = fit_landmarks(model, landmarks_px, intrinsics, weights, config=config.fit)
     elif not isinstance(fit, LandmarkFit):
         raise TypeError(f"fit must be a LandmarkFit of batch {frames.shape[0]} or None, got {type(fit).__name__}")
-    elif fit.rotation.shape[0] != frames.shape[0]:  # (said "got LandmarkFit", the right type)
-        raise ValueError(f"fit must be a LandmarkFit of batch {frames.shape[0]}, got batch {fit.rotation.shape[0]}")
     else:  # in the model's dtype and device, as fit_landmarks returns it
+        check_given_fit(model, fit, frames.shape[0])
         fit = fit.to(model.device, model.dtype)
     layout = _layout(model)
     B = frames.shape[0]
