@@ -654,3 +654,37 @@ def test_many_levels_asked_for_a_tiny_face_fail_its_start_without_a_crash():
     first = tracker.initialise(frames[:1], tiny[None])
     assert int(first.status) == FAILED and int(first.start_failure) == int(StartFailure.FACE_TOO_SMALL)
     assert tracker.state.num_levels == 8 and int(tracker(frames[1:2]).status) == LOST
+
+
+def test_a_stream_may_take_gray_and_rgb_frames_at_its_online_start():
+    """Frames are ``(B, 3, H, W)`` RGB or ``(B, 1, H, W)`` gray at every call (docs/python-api.md; a stream keeps its
+    size and batch, nothing more). A stream started on RGB frames and stepped on gray ones (or the other way round)
+    crashed at the online start's re-anchoring, where its first frame and its keyframe were stacked: torch.stack's
+    "expects each tensor to be equal size". Both are made gray there, as the refinement makes them: the run
+    re-anchors and follows the turn as the same frames all given gray do."""
+    from torchface.appearance.sampling import to_gray
+    from torchface.geometry.so3 import geodesic_angle_deg
+    from torchface.synth import render_sequence
+    from torchface.tracker.lookahead import LookaheadConfig
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    from _helpers import candide_spec
+
+    yaw = [0.0, 6.0, 12.0, 12.0]
+    rgb, gt = render_sequence(candide_spec("turn", [[y, 0.0, 0.0] for y in yaw], [[0.0, 0.0, 450.0]] * 4, W, H))
+    gray, lm = to_gray(rgb), gt.landmarks_px[:1].float()
+    la = LookaheadConfig(iterations=(4, 3), max_points=800)
+
+    def run(first: torch.Tensor, rest: torch.Tensor) -> tuple[FaceTracker, list]:
+        tracker = FaceTracker(CFG, refine_first=la)
+        results = [tracker.initialise(first[:1], lm)] + [tracker(rest[i : i + 1]) for i in range(1, len(yaw))]
+        return tracker, results
+
+    _, same = run(gray, gray)
+    for first, rest in ((rgb, gray), (gray, rgb)):
+        tracker, results = run(first, rest)
+        ms = tracker.state.management
+        assert ms.first is None and ms.head_rotation is not None  # (re-anchored: the wait is over)
+        assert all(bool(r.success) for r in results)
+        for r, s in zip(results, same):
+            assert float(geodesic_angle_deg(r.rotation, s.rotation)) < 0.05
