@@ -1062,6 +1062,10 @@ def check_initialise_inputs(
         got = tuple(landmarks_px.shape)
         # (a (K, 2) set for one stream, as a landmark file holds it, was told no more than that)
         hint = ": one stream's, landmarks_px[None]" if B == 1 and got == (K, 2) else ""
+        if B == 1 and len(got) == 3 and got[1:] == (K, 2):  # (a clip's, as GroundTruth.landmarks_px: told no more)
+            hint = ": a set per frame of a clip? the first frame's, landmarks_px[:1]"
+        elif len(got) == 4 and got[1:] == (B, K, 2):  # ((T, B, K, 2): the streams' clips)
+            hint = ": a set per frame? the first frame's, landmarks_px[0]"
         raise ValueError(f"landmarks_px must be (B, K, 2) with B = {B} (one set per frame), got {got}{hint}")
     if tuple(landmarks_px.shape[1:]) != (K, 2):
         # ((B, 2, K): x and y rows, as some detectors give them)
