@@ -522,3 +522,27 @@ def test_uint8_colour_frames_by_planes_are_the_whole_image_conversion(bgr, size)
     got, fmt = frame_to_tensor(array, bgr, "x", convert=h % 2 == 1)
     assert torch.equal(got, want) and got.is_contiguous() and got.dtype == torch.float32
     assert fmt == ("uint8 BGR" if bgr else "uint8 RGB")
+
+
+def test_a_missing_path_starting_with_a_tilde_is_told_that_nothing_expanded_it(tmp_path, monkeypatch):
+    """From Python no shell expands ``~``: ``open_frames("~/clip.mp4")`` and ``read_landmarks("~/lm.csv", W, H)``
+    were told "no such file or folder" / "no such landmarks file" alone, where ``torchface track`` and training_hooks'
+    datasets name the ``~``. They are told so too, also where ``os.path.expanduser`` cannot expand it; a ``~name``
+    that no home is, is a name as any other."""
+    from _helpers import without_home
+
+    from torchface.io import read_landmarks
+
+    monkeypatch.setenv("HOME", str(tmp_path))
+    monkeypatch.chdir(tmp_path)
+    tilde = r" \('~' is not expanded here: os\.path\.expanduser\(path\) names the home folder\)$"
+    with pytest.raises(InputError, match=r"^~/no_such\.mp4: no such file or folder" + tilde):
+        open_frames("~/no_such.mp4")
+    with pytest.raises(InputError, match=r"^~/no_such\.csv: no such landmarks file" + tilde):
+        read_landmarks("~/no_such.csv", 64, 48)
+    with pytest.raises(InputError, match=r"^~torchface-no-such-user\.mp4: no such file or folder$"):
+        open_frames("~torchface-no-such-user.mp4")
+    without_home(monkeypatch)
+    with pytest.raises(InputError, match=r"^~/no_such\.npy: no such file or folder \('~' is not expanded here, and "
+                                         r"os\.path\.expanduser cannot expand it here \(HOME is not set"):
+        open_frames("~/no_such.npy")

@@ -68,6 +68,7 @@ from typing import TYPE_CHECKING, TypeVar
 
 import numpy as np
 
+from torchface._paths import missing_path_hint
 from torchface._words import counted
 from torchface.conventions import (
     IBUG68_MIRROR, MEDIAPIPE_MESH_HINT, MEDIAPIPE_MESH_POINT_COUNTS, NORMALISED_CHECK_MIN_SIDE,
@@ -862,7 +863,8 @@ def read_landmarks(
     _check_frame_size(width, height)  # (before the file is read: a caller's mistake, whatever the file holds)
     p = Path(path)
     if not p.is_file():
-        raise InputError(f"{p}: {'a folder, not a landmarks file' if p.is_dir() else 'no such landmarks file'}")
+        raise InputError(f"{p}: a folder, not a landmarks file" if p.is_dir()
+                         else f"{p}: no such landmarks file{missing_path_hint(path)}")  # fmt: skip
     if p.suffix.lower() == ".npy":
         try:
             points = np.load(p, allow_pickle=False)

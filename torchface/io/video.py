@@ -48,6 +48,7 @@ import torch
 from torch import Tensor
 
 from torchface._frame_values import value_scale, value_scale_hint
+from torchface._paths import missing_path_hint
 from torchface._words import counted
 from torchface.geometry._checks import check_number
 from torchface.io.errors import InputError
@@ -579,7 +580,7 @@ def open_frames(path: str | os.PathLike[str], convert: bool = False, fps: float 
     fps = check_number(fps, "fps", "(0, inf)", True, "frames per second")  # (before the input is opened)
     p = Path(path)
     if not p.exists():
-        raise InputError(f"{p}: no such file or folder")
+        raise InputError(f"{p}: no such file or folder{missing_path_hint(path)}")
     if p.is_dir():
         files = image_files(p)
         if not files:
