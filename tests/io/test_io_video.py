@@ -140,6 +140,22 @@ def test_image_folder_16_bit_gray_and_odd_size(tmp_path):
     torch.testing.assert_close(out[:, 0, 0, 0], torch.tensor([1000.0, 2000.0, 3000.0]) / 65535)
 
 
+def test_convert_must_be_a_bool(tmp_path):
+    """``open_frames(path, convert=...)`` took any truthy value: ``convert="no"`` (or ``"False"``, from a config
+    file's text) converted the frames it was meant to refuse. It is a bool, as the settings' flags are, checked
+    before the input is opened; ``np.bool_`` (an array's element) too."""
+    for i in range(2):
+        cv2.imwrite(str(tmp_path / f"f{i:02d}.png"), np.full((40, 56), 100, dtype=np.uint8))  # gray: refused
+    for bad in ("no", "False", 0, None):
+        with pytest.raises(TypeError, match=rf"^convert must be a bool, got {type(bad).__name__} {bad!r}$"):
+            open_frames(tmp_path, convert=bad)  # type: ignore[arg-type]
+        with pytest.raises(TypeError, match="convert must be a bool"):
+            open_frames(tmp_path / "missing", convert=bad)  # type: ignore[arg-type]
+    with pytest.raises(InputError, match="grayscale"):
+        open_frames(tmp_path, convert=np.bool_(False))  # type: ignore[arg-type]
+    assert open_frames(tmp_path, convert=True).info.conversion == "uint8 gray -> RGB"
+
+
 def test_gray_frame_mid_folder_is_rejected(tmp_path):
     cv2.imwrite(str(tmp_path / "a.png"), np.zeros((40, 40, 3), np.uint8))
     cv2.imwrite(str(tmp_path / "b.png"), np.zeros((40, 40), np.uint8))

@@ -50,7 +50,7 @@ from torch import Tensor
 from torchface._frame_values import value_scale, value_scale_hint
 from torchface._paths import missing_path_hint
 from torchface._words import counted
-from torchface.geometry._checks import check_number
+from torchface.geometry._checks import check_bool, check_number
 from torchface.io.errors import InputError
 
 __all__ = [
@@ -573,11 +573,14 @@ def open_frames(path: str | os.PathLike[str], convert: bool = False, fps: float 
         InputError: missing path, nothing decodable, zero frames, an unsupported frame format, a frame
             smaller than :data:`MIN_SIZE`, or (without ``convert``) a grayscale, RGBA, 16-bit or odd-sized
             first frame.
+        TypeError: ``convert`` not a bool (``"no"`` was taken as true), ``fps`` not a real number.
+        ValueError: ``fps`` not finite and > 0.
 
     Example:
         >>> # with open_frames("clip.mp4") as frames: first = next(frames)   # (3, H, W)
     """
     fps = check_number(fps, "fps", "(0, inf)", True, "frames per second")  # (before the input is opened)
+    convert = check_bool(convert, "convert")  # (open_frames(path, "no") converted: any truthy value did)
     p = Path(path)
     if not p.exists():
         raise InputError(f"{p}: no such file or folder{missing_path_hint(path)}")
