@@ -98,6 +98,9 @@ def test_detector_image_refuses_what_it_would_misread():
          r"got ndarray \(an \(H, W, 3\) uint8 RGB image.* already the detector's image\)$"),
         # (a frame's .numpy() was told that it was already the detector's image)
         (frame.numpy(), TypeError, r"got ndarray \(float32 \(3, 12, 16\): torch\.from_numpy\(frame\) of a \(3, H, W\)"),
+        # (RGBA was told the shape alone; a meta frame was torch's NotImplementedError "Cannot copy out of meta tensor")
+        (torch.cat([frame, frame[:1]]), ValueError, r"got \(4, 12, 16\) \(RGBA: drop the alpha, frame\[:3\]\)$"),
+        (frame.to("meta"), ValueError, r"^frame is on device 'meta', which holds no values"),
     ):  # fmt: skip
         with pytest.raises(error, match=said):
             detector_image(bad)  # type: ignore[arg-type]
@@ -261,6 +264,13 @@ def test_batched_detector_gives_a_per_image_detector_rgb_images_of_gray_frames()
         batched(detector)(gray.numpy())  # type: ignore[arg-type]
     for bad in (gray[0], (gray * 255).to(torch.uint8), gray.expand(-1, 2, -1, -1)):
         with pytest.raises(ValueError, match=r"frames must be \(B, 3, H, W\) RGB or \(B, 1, H, W\) gray, float"):
+            batched(detector)(bad)
+    # told how to make them, as the tracker's own check tells them (they were told the shape alone)
+    for bad, said in (((gray * 255).to(torch.uint8), r"\(uint8 frames: pass frames\.float\(\) / 255\)$"),
+                      (gray.expand(-1, 3, -1, -1).permute(0, 2, 3, 1),
+                       r"\(channels last \(B, H, W, C\): frames\.permute"),
+                      (gray[0].expand(3, -1, -1), r"\(one frame \(C, H, W\): frames\[None\]")):  # fmt: skip
+        with pytest.raises(ValueError, match=said):
             batched(detector)(bad)
 
 

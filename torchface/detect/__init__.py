@@ -367,7 +367,11 @@ def detector_image(frame: "Tensor") -> np.ndarray:
             hint = " (gray (1, H, W): frame.expand(3, -1, -1))"
         elif len(shape) == 2:
             hint = " (gray (H, W): frame.expand(3, -1, -1))"
+        elif len(shape) == 3 and shape[0] == 4:  # (told the shape alone)
+            hint = " (RGBA: drop the alpha, frame[:3])"
         raise ValueError(f"frame must be (3, H, W) RGB, got {shape}{hint}")
+    if frame.device.type == "meta":  # (torch's NotImplementedError "Cannot copy out of meta tensor; no data!")
+        raise ValueError("frame is on device 'meta', which holds no values: pass it on a device that computes")
     if not frame.is_floating_point():
         hint = " (uint8: frame.float() / 255)" if frame.dtype == torch.uint8 else ""
         raise ValueError(f"frame must be float in [0, 1], got {frame.dtype}{hint}")
@@ -484,8 +488,10 @@ class _Batched:
             raise TypeError(f"frames must be a torch.Tensor (B, 3, H, W) RGB or (B, 1, H, W) gray, float in [0, 1], "
                             f"got {type(frames).__name__}")  # fmt: skip
         if frames.dim() != 4 or frames.shape[1] not in (1, 3) or not frames.is_floating_point():
+            from torchface.tracker.step import _frame_hint  # (the tracker's words: uint8, channels last, RGBA, ...)
+
             raise ValueError(f"frames must be (B, 3, H, W) RGB or (B, 1, H, W) gray, float in [0, 1], got "
-                             f"{tuple(frames.shape)} {frames.dtype}")  # fmt: skip
+                             f"{tuple(frames.shape)} {frames.dtype}{_frame_hint(frames)}")  # fmt: skip
         if frames.shape[1] == 1:  # gray frames (the tracker takes them): the per-image detector takes RGB images
             frames = frames.expand(-1, 3, -1, -1)
         # At least float32 (float64 frames: float64): in half-precision frames' dtype the landmarks were rounded to
