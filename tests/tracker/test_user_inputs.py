@@ -547,6 +547,19 @@ def test_landmarks_of_every_frame_of_a_clip_are_told_to_take_the_first_frames(cl
     assert FaceTracker(CFG).initialise(frames[:1].expand(2, -1, -1, -1), two[0]).success.all()
 
 
+def test_another_landmark_set_is_named_and_openposes_70_told_to_keep_its_first_68(clip):
+    """``initialise`` given OpenPose's ``(B, 70, 3)`` face keypoints (x, y, confidence; the 68 iBUG points, then the
+    pupils) or WFLW's ``(B, 98, 2)`` said the shape alone. Each is named; what it names for OpenPose's starts."""
+    frames, lm = clip
+    openpose = torch.cat([torch.cat([lm, lm[36:38]]), torch.ones(70, 1)], -1)[None]  # (1, 70, 3)
+    with pytest.raises(ValueError, match=r"got \(1, 70, 3\) \(OpenPose's 70 face points\? Its first 68 are the iBUG "
+                                         r"points, in their order \(then the pupils\): landmarks_px\[:, :68, :2\]\)$"):
+        FaceTracker(CFG).initialise(frames[:1], openpose)
+    assert bool(FaceTracker(CFG).initialise(frames[:1], openpose[:, :68, :2]).success)
+    with pytest.raises(ValueError, match=r"got \(1, 98, 2\) \(WFLW's 98 points\? The 68 iBUG / 300-W landmarks"):
+        FaceTracker(CFG).initialise(frames[:1], torch.rand(1, 98, 2) * 100)
+
+
 def test_a_choice_given_as_a_string_is_told_the_member_to_pass():
     """``TrackerConfig(solver="fast")`` was "solver must be a TrackSolver, got 'fast'" (``robust="huber"``: "got str"),
     and ``TrackSolver`` and ``TemplateConfig``, which docs/python-api.md names among the settings, did not import from

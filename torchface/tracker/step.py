@@ -30,7 +30,9 @@ from torchface._scalar import scalar
 from torchface.appearance.illumination import ILLUMINATION_TERM_NAMES, NUM_ILLUMINATION_TERMS, illumination_basis
 from torchface.appearance.sampling import image_with_gradients, pyr_down, sample_at_pixels, to_gray
 from torchface.backend import Backend, use_native
-from torchface.conventions import MEDIAPIPE_MESH_HINT, MEDIAPIPE_MESH_POINT_COUNTS, NEAR_PLANE_MM
+from torchface.conventions import (
+    MEDIAPIPE_MESH_HINT, MEDIAPIPE_MESH_POINT_COUNTS, NEAR_PLANE_MM, other_landmark_set_hint,
+)
 from torchface.geometry._checks import (
     check_bool, check_choice, check_int, check_intrinsics, check_ints, check_number, check_reals,
 )
@@ -1074,6 +1076,9 @@ def check_initialise_inputs(
                 if tuple(landmarks_px.shape[1:]) == (K, 3) else "")  # fmt: skip
         if K == 68 and landmarks_px.shape[1] in MEDIAPIPE_MESH_POINT_COUNTS:  # (CANDIDE-3's, the iBUG points)
             hint = f" ({MEDIAPIPE_MESH_HINT})"  # (MediaPipe's (B, 478, 2 or 3) points were told the shape alone)
+        other = other_landmark_set_hint(landmarks_px.shape[1], "landmarks_px[:, :68, :2]") if K == 68 else None
+        if other is not None:  # (WFLW's (B, 98, 2), OpenPose's (B, 70, 3): told the shape alone)
+            hint = f" ({other})"
         raise ValueError(f"landmarks_px must be (B, {K}, 2), the model's {K} landmarks (NaN rows for missing ones), "
                          f"got {tuple(landmarks_px.shape)}{hint}")  # fmt: skip
     if weights is not None and not isinstance(weights, Tensor):
