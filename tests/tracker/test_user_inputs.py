@@ -532,14 +532,17 @@ def test_a_first_call_with_landmarks_or_a_clip_is_told_what_to_pass(clip):
 def test_landmarks_of_every_frame_of_a_clip_are_told_to_take_the_first_frames(clip):
     """The landmarks of a clip, ``(T, K, 2)`` for one stream (``GroundTruth.landmarks_px``, a detector run over every
     frame) or ``(T, B, K, 2)`` for ``B``, were told the shape alone, where ``torchface track`` tells such a file to
-    take the first frame's set. The message names it, and what it names starts the streams."""
+    take the first frame's set; ``(N, K, 2)`` may also be N faces of the one frame given, a stream each. The message
+    names them, and what it names starts the streams."""
     frames, lm = clip
     per_frame = torch.stack([lm, lm + 1.0, lm + 2.0])  # (T, K, 2)
     with pytest.raises(ValueError, match=r"^landmarks_px must be \(B, K, 2\) with B = 1 \(one set per frame\), got "
                                          r"\(3, 68, 2\): a set per frame of a clip\? the first frame's, "
-                                         r"landmarks_px\[:1\]$"):
+                                         r"landmarks_px\[:1\]; 3 faces in this frame\? a stream each, "
+                                         r"frames\.expand\(3, -1, -1, -1\)$"):
         FaceTracker(CFG).initialise(frames[:1], per_frame)
     assert bool(FaceTracker(CFG).initialise(frames[:1], per_frame[:1]).success)
+    assert FaceTracker(CFG).initialise(frames[:1].expand(3, -1, -1, -1), per_frame).success.all()
     two = per_frame[:, None].expand(-1, 2, -1, -1)  # (T, B, K, 2)
     with pytest.raises(ValueError, match=r"with B = 2 \(one set per frame\), got \(3, 2, 68, 2\): a set per frame\? "
                                          r"the first frame's, landmarks_px\[0\]$"):

@@ -1065,7 +1065,9 @@ def check_initialise_inputs(
         # (a (K, 2) set for one stream, as a landmark file holds it, was told no more than that)
         hint = ": one stream's, landmarks_px[None]" if B == 1 and got == (K, 2) else ""
         if B == 1 and len(got) == 3 and got[1:] == (K, 2):  # (a clip's, as GroundTruth.landmarks_px: told no more)
-            hint = ": a set per frame of a clip? the first frame's, landmarks_px[:1]"
+            n = got[0]
+            hint = (f": a set per frame of a clip? the first frame's, landmarks_px[:1]; {n} faces in this frame? a "
+                    f"stream each, frames.expand({n}, -1, -1, -1)")  # fmt: skip
         elif len(got) == 4 and got[1:] == (B, K, 2):  # ((T, B, K, 2): the streams' clips)
             hint = ": a set per frame? the first frame's, landmarks_px[0]"
         raise ValueError(f"landmarks_px must be (B, K, 2) with B = {B} (one set per frame), got {got}{hint}")
