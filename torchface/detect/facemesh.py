@@ -26,7 +26,7 @@ import weakref
 from importlib import resources
 from pathlib import Path
 from collections.abc import Iterator, Sequence
-from typing import TYPE_CHECKING, Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar, cast
 
 import numpy as np
 
@@ -175,8 +175,8 @@ def mesh_to_ibug68(mesh_points: _Mesh) -> _Mesh:
         [10.0, 20.0]
     """
     global _TABLE
-    torch = sys.modules.get("torch")  # (a tensor's module is loaded wherever there is a tensor)
-    tensor = torch is not None and isinstance(mesh_points, torch.Tensor)
+    torch_module = sys.modules.get("torch")  # (a tensor's module is loaded wherever there is a tensor)
+    tensor = torch_module is not None and isinstance(mesh_points, torch_module.Tensor)
     shape = tuple(mesh_points.shape) if tensor else np.shape(mesh_points)
     if len(shape) < 2 or shape[-2] not in (468, MESH_POINTS):
         raise ValueError(f"mesh_points must be (..., {MESH_POINTS}, D) (or 468: without the iris points, which the "
@@ -185,13 +185,21 @@ def mesh_to_ibug68(mesh_points: _Mesh) -> _Mesh:
         _TABLE = read_mesh_table()[:2]
     idx, wts = _TABLE
     if tensor:
-        dtype = torch.float64 if mesh_points.dtype == torch.float64 else torch.float32
-        points = mesh_points.to(dtype)
-        index = torch.as_tensor(idx, device=points.device)
-        return torch.einsum("kj,...kjd->...kd", torch.as_tensor(wts, dtype=dtype, device=points.device),
-                            points[..., index, :])  # fmt: skip
+        return cast(_Mesh, _tensor_mesh_to_ibug68(cast("torch.Tensor", mesh_points), idx, wts))
     points = np.asarray(mesh_points, dtype=np.float64)
-    return np.einsum("kj,...kjd->...kd", wts, points[..., idx, :])
+    return cast(_Mesh, np.einsum("kj,...kjd->...kd", wts, points[..., idx, :]))
+
+
+def _tensor_mesh_to_ibug68(mesh_points: "torch.Tensor", idx: np.ndarray, wts: np.ndarray) -> "torch.Tensor":
+    """:func:`mesh_to_ibug68` of a tensor, by the table's indices ``idx`` and weights ``wts`` ``(68, 3)``: float64
+    of float64, else float32, on its device."""
+    import torch
+
+    dtype = torch.float64 if mesh_points.dtype == torch.float64 else torch.float32
+    points = mesh_points.to(dtype)
+    index = torch.as_tensor(idx, device=points.device)
+    return torch.einsum("kj,...kjd->...kd", torch.as_tensor(wts, dtype=dtype, device=points.device),
+                        points[..., index, :])  # fmt: skip
 
 
 def canonical_mesh(model: str | os.PathLike[str] | None = None) -> np.ndarray:
