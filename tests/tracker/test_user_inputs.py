@@ -226,6 +226,33 @@ def test_landmark_weights_of_one_stream_or_with_a_trailing_axis_are_told_how_to_
     assert int(FaceTracker(CFG).initialise(frames[:1], lm[None], weights=w[None, :, None][..., 0]).status) == CONVERGED
 
 
+def test_landmark_weights_that_are_not_a_tensor_are_told_how_to_make_one(clip):
+    """NumPy or list weights were told "weights must be a (1, 68) tensor or None, got ndarray" alone, where landmarks
+    of those types are told how to make a tensor (docs/python-api.md); by ``initialise``, ``fit_landmarks`` and
+    ``pyramid_for_faces``. The way named starts the streams."""
+    import numpy as np
+
+    from torchface.geometry import Intrinsics
+    from torchface.model import load_candide3
+    from torchface.tracker import fit_landmarks, pyramid_for_faces
+
+    frames, lm = clip
+    w = np.ones(68)
+    with pytest.raises(TypeError, match=r"^weights must be a \(1, 68\) tensor or None, got ndarray \(a NumPy array: "
+                                        r"torch\.from_numpy\(weights\)\[None\]\)$"):
+        FaceTracker(CFG).initialise(frames[:1], lm[None], weights=w)  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match=r"got ndarray \(a NumPy array: torch\.from_numpy\(weights\)\[None\]\.expand"
+                                        r"\(2, -1\)\)$"):
+        FaceTracker(CFG).initialise(frames[:2], torch.stack([lm, lm]), weights=w)  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match=r"got list \(a list: torch\.tensor\(weights\), laid out \(1, 68\)\)$"):
+        fit_landmarks(load_candide3(), lm[None], Intrinsics.default(W, H),
+                      weights=[[1.0] * 68])  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match=r"got ndarray \(a NumPy array: torch\.from_numpy\(weights\)\)$"):
+        pyramid_for_faces(CFG, lm[None], (H, W), w[None])  # type: ignore[arg-type]
+    made = torch.from_numpy(w)[None]
+    assert int(FaceTracker(CFG).initialise(frames[:1], lm[None], weights=made).status) == CONVERGED
+
+
 def test_intrinsics_that_look_mixed_up_are_named_and_tracked(clip):
     """Intrinsics in OpenCV's matrix order (``fx, cx, fy, cy`` for ``fx, fy, cx, cy``) were tracked without a word
     (a camera that sees the face 2x stretched); a size swapped or given among the other numbers was told the size

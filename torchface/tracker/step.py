@@ -48,9 +48,9 @@ from torchface.template.management import TemplateConfig
 from torchface.template.points import Template, _of_dtype, build_template
 from torchface.tracker.fast import FUNCTION_TOLERANCE, STEP_TOLERANCE, LevelCamera, robust_scale_of, solve_level
 from torchface.tracker.fit import (
-    MIN_FIT_LANDMARKS, FitConfig, LandmarkFit, _landmark_width_mm, _weights_shape_hint, check_landmark_type,
-    check_landmark_values, check_model_landmarks, check_pixel_landmarks, fit_landmarks, landmark_targets,
-    normalised_streams,
+    MIN_FIT_LANDMARKS, FitConfig, LandmarkFit, _landmark_width_mm, _weights_shape_hint, _weights_type_hint,
+    check_landmark_type, check_landmark_values, check_model_landmarks, check_pixel_landmarks, fit_landmarks,
+    landmark_targets, normalised_streams,
 )
 from torchface.tracker.inference import without_autograd
 from torchface.tracker.objective import frame_residuals, warp_points
@@ -1084,7 +1084,8 @@ def check_initialise_inputs(
         raise ValueError(f"landmarks_px must be (B, {K}, 2), the model's {K} landmarks (NaN rows for missing ones), "
                          f"got {tuple(landmarks_px.shape)}{hint}")  # fmt: skip
     if weights is not None and not isinstance(weights, Tensor):
-        raise TypeError(f"weights must be a ({B}, {K}) tensor or None, got {type(weights).__name__}")
+        raise TypeError(f"weights must be a ({B}, {K}) tensor or None, got {type(weights).__name__}"
+                        f"{_weights_type_hint(weights, B, K)}")  # fmt: skip
     if weights is not None and tuple(weights.shape) != (B, K):
         raise ValueError(f"weights must be ({B}, {K}), got {tuple(weights.shape)}"
                          f"{_weights_shape_hint(tuple(weights.shape), B, K)}")  # fmt: skip
@@ -1153,7 +1154,8 @@ def pyramid_for_faces(
     if landmarks_px.dim() != 3 or landmarks_px.shape[-1] != 2:
         raise ValueError(f"landmarks_px must be (B, K, 2), got {tuple(landmarks_px.shape)}")
     if weights is not None and not isinstance(weights, Tensor):
-        raise TypeError(f"weights must be a (B, K) tensor or None, got {type(weights).__name__}")
+        raise TypeError(f"weights must be a (B, K) tensor or None, got {type(weights).__name__}"
+                        f"{_weights_type_hint(weights, *landmarks_px.shape[:2])}")  # fmt: skip
     if weights is not None and tuple(weights.shape) != tuple(landmarks_px.shape[:2]):
         raise ValueError(f"weights must be {tuple(landmarks_px.shape[:2])} (B, K), got {tuple(weights.shape)}")
     check_landmark_values(landmarks_px, weights)
