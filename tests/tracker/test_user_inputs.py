@@ -575,6 +575,15 @@ def test_landmarks_of_every_frame_of_a_clip_are_told_to_take_the_first_frames(cl
                                          r"the first frame's, landmarks_px\[0\]$"):
         FaceTracker(CFG).initialise(frames[:1].expand(2, -1, -1, -1), two)
     assert FaceTracker(CFG).initialise(frames[:1].expand(2, -1, -1, -1), two[0]).success.all()
+    # the frames of a clip given as the batch with the first frame's landmarks: "one set per frame" read as if a set
+    # for each frame were wanted (each frame then a stream of its own, started afresh)
+    with pytest.raises(ValueError, match=r"with B = 3 \(one set per frame\), got \(1, 68, 2\): the frames of one "
+                                         r"video\? initialise takes its first, frames\[:1\], and each later frame is a "
+                                         r"call of its own, tracker\(frames\[t : t \+ 1\]\); 3 streams of this face: "
+                                         r"landmarks_px\.expand\(3, -1, -1\)$"):
+        FaceTracker(CFG).initialise(frames, lm[None])
+    tracker = FaceTracker(CFG)
+    assert bool(tracker.initialise(frames[:1], lm[None]).success) and bool(tracker(frames[1:2]).success)
 
 
 def test_another_landmark_set_is_named_and_openposes_70_told_to_keep_its_first_68(clip):

@@ -1070,6 +1070,11 @@ def check_initialise_inputs(
                     f"stream each, frames.expand({n}, -1, -1, -1)")  # fmt: skip
         elif len(got) == 4 and got[1:] == (B, K, 2):  # ((T, B, K, 2): the streams' clips)
             hint = ": a set per frame? the first frame's, landmarks_px[0]"
+        elif B > 1 and got == (1, K, 2):  # (a clip's frames given as the batch: "one set per frame" read as if a set
+            # for each of its frames were wanted, which starts each frame as a stream of its own)
+            hint = (f": the frames of one video? initialise takes its first, frames[:1], and each later frame is a "
+                    f"call of its own, tracker(frames[t : t + 1]); {B} streams of this face: landmarks_px.expand({B}, "
+                    "-1, -1)")  # fmt: skip
         raise ValueError(f"landmarks_px must be (B, K, 2) with B = {B} (one set per frame), got {got}{hint}")
     if tuple(landmarks_px.shape[1:]) != (K, 2):
         # ((B, 2, K): x and y rows, as some detectors give them)
