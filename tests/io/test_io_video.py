@@ -43,6 +43,24 @@ def test_rgb_uint8_array_round_trip(tmp_path):
     torch.testing.assert_close(out, torch.from_numpy(arr).permute(0, 3, 1, 2).float() / 255)
 
 
+def test_an_integer_array_is_told_the_unsigned_type_of_its_values(tmp_path):
+    """An ``.npy`` clip of int64 (``np.array`` of Python ints) or int32 pixels was told "unsupported pixel type int64
+    (expected uint8, uint16 or float in [0, 1])" alone; where its values fit uint8 (or uint16) it is told the
+    conversion, and the array converted so reads as the same frames."""
+    rng = np.random.default_rng(0)
+    frames = rng.integers(0, 256, (2, 40, 50, 3))  # int64
+    for array, said in ((frames, r"its values are 0-255: a\.astype\(np\.uint8\)\)$"),
+                        (frames.astype(np.int32) * 257, r"its values are 0-65535: a\.astype\(np\.uint16\)\)$"),
+                        (frames - 1, r"\(expected uint8, uint16 or float in \[0, 1\]\)$")):  # fmt: skip
+        np.save(tmp_path / "clip.npy", array)
+        with pytest.raises(InputError, match=rf"frame 0: unsupported pixel type {array.dtype} .*{said}"):
+            open_frames(tmp_path / "clip.npy")
+    np.save(tmp_path / "clip.npy", frames.astype(np.uint8))
+    with open_frames(tmp_path / "clip.npy") as reader:
+        first = next(reader)
+    torch.testing.assert_close(first, torch.from_numpy(frames[0]).permute(2, 0, 1).float() / 255)
+
+
 def test_float16_array_is_read_as_float_in_0_1(tmp_path):
     """docs/cli.md takes ``.npy`` float arrays in [0, 1]; a float16 one (half the size of float32) was refused as
     "unsupported pixel type float16 (expected uint8, uint16 or float in [0, 1])", which it is."""

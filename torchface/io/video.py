@@ -251,7 +251,13 @@ def frame_to_tensor(array: np.ndarray, bgr: bool, where: str, convert: bool = Fa
     """
     array = _layout(array, where)
     if array.dtype not in (np.uint8, np.uint16, np.float16, np.float32, np.float64):  # (float16: a half .npy clip)
-        raise InputError(f"{where}: unsupported pixel type {array.dtype} (expected uint8, uint16 or float in [0, 1])")
+        hint = ""
+        if array.dtype.kind in "iu" and array.size and int(array.min()) >= 0 and int(array.max()) <= 65535:
+            # (an array of Python ints, np.array(rows), is int64: told the type alone)
+            small = int(array.max()) <= 255
+            hint = f"; its values are {'0-255' if small else '0-65535'}: a.astype(np.{'uint8' if small else 'uint16'})"
+        raise InputError(f"{where}: unsupported pixel type {array.dtype} (expected uint8, uint16 or float in [0, 1]"
+                         f"{hint})")  # fmt: skip
     if array.dtype.kind == "f" and not (np.isfinite(array).all() and array.min() >= 0.0 and array.max() <= 1.0):
         raise InputError(f"{where}: float frames must be finite and in [0, 1], {_float_range_problem(array)}")
     problems = format_problems(array)
