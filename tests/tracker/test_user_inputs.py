@@ -599,6 +599,30 @@ def test_another_landmark_set_is_named_and_openposes_70_told_to_keep_its_first_6
         FaceTracker(CFG).initialise(frames[:1], torch.rand(1, 98, 2) * 100)
 
 
+def test_an_iterator_of_frames_is_told_to_give_one_frame_per_call(clip, tmp_path):
+    """A generator of frames, or ``open_frames``' reader itself, given to ``initialise`` or a step was told "got
+    generator" (``FrameReader``) alone, where a list is told to stack it. It is told to give one frame per call (and
+    what stacking them makes), and what it names tracks."""
+    import numpy as np
+
+    from torchface.io import open_frames
+
+    frames, lm = clip
+    np.save(tmp_path / "clip.npy", frames.permute(0, 2, 3, 1).numpy())
+    said = (r"got {} \(an iterator of frames: one per call, next\(frames\)\[None\] of \(3, H, W\) frames; or "
+            r"torch\.stack\(list\(frames\)\), one frame per stream\)$")
+    tracker = FaceTracker(CFG)
+    with pytest.raises(TypeError, match=said.format("generator")):
+        tracker.initialise((f for f in frames[:1]), lm[None])  # type: ignore[arg-type]
+    with open_frames(tmp_path / "clip.npy") as reader:
+        with pytest.raises(TypeError, match=said.format("FrameReader")):
+            tracker.initialise(reader, lm[None])  # type: ignore[arg-type]
+        assert bool(tracker.initialise(next(reader)[None], lm[None]).success)
+        with pytest.raises(TypeError, match=said.format("FrameReader")):
+            tracker(reader)  # type: ignore[arg-type]
+        assert bool(tracker(next(reader)[None]).success)
+
+
 def test_a_choice_given_as_a_string_is_told_the_member_to_pass():
     """``TrackerConfig(solver="fast")`` was "solver must be a TrackSolver, got 'fast'" (``robust="huber"``: "got str"),
     and ``TrackSolver`` and ``TemplateConfig``, which docs/python-api.md names among the settings, did not import from

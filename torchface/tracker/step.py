@@ -14,7 +14,7 @@ import functools
 import math
 import threading
 import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, cast
 
@@ -881,7 +881,8 @@ def not_tensor_hint(
     its message, empty where nothing is to say (:func:`check_frames`'; ``training_hooks.NormaliseFaces``', and
     ``training_hooks.track_sequence``'s for each streamed frame). It covers a NumPy image as OpenCV reads it,
     ``(H, W, 3)`` uint8 BGR (the common case: the message said "got ndarray" alone), NumPy frames ``(N, H, W, 3)``,
-    a gray image ``(H, W)``, another NumPy array, and a list of frames.
+    a gray image ``(H, W)``, another NumPy array, a list of frames and an iterator of them (a generator,
+    :func:`torchface.io.open_frames`' reader: for the tracker's ``per``, one frame per call too).
 
     Args:
         frames: what was passed.
@@ -905,6 +906,10 @@ def not_tensor_hint(
     """
     if isinstance(frames, (list, tuple)):
         return "" if one_frame else f" (a {type(frames).__name__} of frames: torch.stack(frames), {per})"
+    if isinstance(frames, Iterator) and not one_frame:  # (a generator, open_frames' reader: told the type alone)
+        # (the tracker's, per frame: a video's frames, one call each; stacked, they are streams)
+        each = " one per call, next(frames)[None] of (3, H, W) frames; or" if per == "one frame per stream" else ""
+        return f" (an iterator of frames:{each} torch.stack(list(frames)), {per})"
     shape, dtype = getattr(frames, "shape", None), str(getattr(frames, "dtype", ""))
     if type(frames).__name__ != "ndarray" or not isinstance(shape, tuple):
         return ""
