@@ -7,7 +7,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-__all__ = ["check_no_tilde", "no_home_reason", "unexpanded_home"]
+__all__ = ["check_no_tilde", "missing_path_hint", "no_home_reason", "unexpanded_home"]
 
 #: The environment variables :func:`getpass.getuser` takes the user's name from, in its order.
 _USER_VARIABLES: tuple[str, ...] = ("LOGNAME", "USER", "LNAME", "USERNAME")
@@ -64,6 +64,26 @@ def check_no_tilde(path: str | os.PathLike[str], name: str) -> None:
         raise ValueError(f"{said}working folder): give os.path.expanduser({text!r})")
     raise ValueError(f"{said}working folder), and os.path.expanduser cannot expand {first!r} here "
                      f"({no_home_reason(first)}): give the home folder's path")  # fmt: skip
+
+
+def missing_path_hint(path: str | os.PathLike[str]) -> str:
+    """Why ``path``, which does not exist, may be missing, as `` (...)``: it starts with a ``~`` or ``~user`` that
+    names a home folder (:func:`unexpanded_home`), which nothing expanded (a path given from Python, where no shell
+    expands it: ``open_frames("~/clip.mp4")`` and ``read_landmarks("~/lm.csv", W, H)`` were told "no such file"
+    alone, where ``torchface track`` names the ``~``); "" otherwise. The words of training_hooks' datasets.
+
+    Example:
+        >>> missing_path_hint("clip.mp4")
+        ''
+    """
+    home = unexpanded_home(os.fspath(path))
+    if home is None:
+        return ""
+    first, expands = home
+    if expands:
+        return f" ('{first}' is not expanded here: os.path.expanduser(path) names the home folder)"
+    return (f" ('{first}' is not expanded here, and os.path.expanduser cannot expand it here "
+            f"({no_home_reason(first)}): give the home folder's path)")  # fmt: skip
 
 
 def no_home_reason(first: str) -> str:

@@ -60,7 +60,8 @@ where they cannot be pixels of a trackable face: all within :data:`NORMALISED_LA
 see :class:`torchface.detect.facemesh.MediaPipeDetector`). One stream's among streams in pixels, or a detector's
 for a stream (:func:`torchface.tracker.fit.normalised_streams`), fail that stream alone (``TrackResult.start_failure``).
 MediaPipe's face mesh points (:data:`MEDIAPIPE_MESH_POINT_COUNTS` of them) are not the iBUG-68 landmarks that
-CANDIDE-3 and the detectors use: a count of theirs where 68 are wanted is refused with :data:`MEDIAPIPE_MESH_HINT`.
+CANDIDE-3 and the detectors use: a count of theirs where 68 are wanted is refused with :data:`MEDIAPIPE_MESH_HINT`,
+and one of another known set's (:data:`OTHER_LANDMARK_SETS`) with :func:`other_landmark_set_hint`.
 
 Projection
 ----------
@@ -105,3 +106,37 @@ MEDIAPIPE_MESH_HINT: str = (
     "predictor, OpenFace and torchface.detect give them), in pixels; torchface.detect.facemesh.mesh_to_ibug68 maps "
     "MediaPipe's 478 (or 468) points to them"
 )
+
+#: Other landmark sets, by their point count, that arrive where the 68 iBUG points are wanted (they were told the
+#: count alone, or that a missing point stays as a NaN row): :func:`other_landmark_set_hint`.
+OTHER_LANDMARK_SETS: dict[int, str] = {
+    5: "a 5-point set's (eyes, nose tip, mouth corners: RetinaFace's, MTCNN's)",
+    70: "OpenPose's 70 face points",
+    98: "WFLW's 98 points",
+    106: "a 106-point set's (InsightFace's 2d106det, JD-landmark's)",
+}
+
+
+def other_landmark_set_hint(count: int, first_68: str) -> str | None:
+    """What is said of ``count`` landmarks given where the 68 iBUG points are wanted, where they are another known
+    set's (:data:`OTHER_LANDMARK_SETS`; None for other counts): OpenPose's 70 hold the 68 in their order, then the
+    two pupils (``first_68``, the caller's code that keeps them: ``"points[:68]"``); the other sets are other
+    points, of which those they share may be given at their iBUG index, the others NaN rows (a 5-point set shares
+    3, fewer than a start takes).
+
+    Example:
+        >>> other_landmark_set_hint(70, "points[:68]")
+        "OpenPose's 70 face points? Its first 68 are the iBUG points, in their order (then the pupils): points[:68]"
+    """
+    what = OTHER_LANDMARK_SETS.get(count)
+    if what is None:
+        return None
+    if count == 70:
+        return f"{what}? Its first 68 are the iBUG points, in their order (then the pupils): {first_68}"
+    wanted = f"{what}? The 68 iBUG / 300-W landmarks are wanted, in their order (as dlib's 68-point predictor, " \
+        "OpenFace and torchface.detect give them)"
+    if count == 5:
+        return (f"{wanted}: of the 5, the nose tip and the mouth corners alone are iBUG points (30, 48, 54), fewer "
+                "than the 4 a start takes")
+    return f"{wanted}: another set's points are other points (those it shares may be given at their iBUG index, " \
+        "the others as NaN rows)"

@@ -2700,7 +2700,8 @@ def track_videos(
         run raises (``InputError``, :class:`VideosStopped`).
 
     Raises:
-        TypeError: ``videos`` is one path, not a sequence of them, or holds something else than paths.
+        TypeError: ``videos`` is one path, not a sequence of them, or holds something else than paths; ``config``
+            is not a :class:`JobConfig` (the landmarks files given in its place: told where they go).
         InputError: an empty path among ``videos`` (``Path("")`` is the current folder); a bad input (each video's
             first frame and landmarks are checked before tracking starts; the message names every input refused,
             :func:`_open_inputs`; with ``keep_going`` it is skipped instead); two inputs of one output name, or the
@@ -2731,6 +2732,11 @@ def track_videos(
             if os.fspath(v) == "":
                 raise InputError(f"videos[{k}] is an empty path (an unset variable?): give a video file, an image "
                                  "folder ('.' for the current one) or a .npy array")  # fmt: skip
+        if not isinstance(config, JobConfig):  # (an AttributeError, "'list' object has no attribute 'landmarks'")
+            hint = ""
+            if isinstance(config, (list, tuple)) or (isinstance(config, (str, os.PathLike)) and config):
+                hint = ": the landmarks files go in it, JobConfig(landmarks=(...))"  # (given where the config goes)
+            raise TypeError(f"config must be a JobConfig, got {type(config).__name__}{hint}")
         inputs = [Path(v) for v in videos]
         if not inputs:
             raise InputError("no input video given")

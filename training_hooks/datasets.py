@@ -191,7 +191,7 @@ import torch
 from torch import Tensor
 from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 
-from torchface.conventions import MEDIAPIPE_MESH_HINT, MEDIAPIPE_MESH_POINT_COUNTS
+from torchface.conventions import MEDIAPIPE_MESH_HINT, MEDIAPIPE_MESH_POINT_COUNTS, other_landmark_set_hint
 from torchface.detect import detector_image, search_first_face
 from torchface.extending import (
     check_bool,
@@ -978,6 +978,8 @@ def _kept_landmarks(
         hint = "a missing point stays, as a NaN row"
         if count == NUM_LANDMARKS and shape[0] in MEDIAPIPE_MESH_POINT_COUNTS:  # (was told the NaN row's rule)
             hint = MEDIAPIPE_MESH_HINT
+        other = other_landmark_set_hint(shape[0], f"landmarks[{index}][:68]") if count == NUM_LANDMARKS else None
+        hint = other or hint  # (WFLW's 98 points were told the NaN row's rule too)
         raise InputError(f"{where}: expected {count} {what}, got {shape[0]} ({hint})")
     return source
 

@@ -1558,6 +1558,13 @@ def test_job_api_refuses_one_path_where_a_sequence_is_expected(clip, tmp_path):
     for one in (str(video), video):
         with pytest.raises(TypeError, match=r"videos must be a sequence of paths, e.g. \["):
             track_videos(one, JobConfig(out_dir=tmp_path, landmarks=(lm,)))
+    # the landmarks files where the config goes, or no config: named (an AttributeError about 'landmarks')
+    for config in ([lm], (str(lm),), lm):
+        with pytest.raises(TypeError, match=r"^config must be a JobConfig, got \w+: the landmarks files go in it, "
+                                            r"JobConfig\(landmarks=\(\.\.\.\)\)$"):
+            track_videos([video], config)  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match=r"^config must be a JobConfig, got NoneType$"):
+        track_videos([video], None)  # type: ignore[arg-type]
     assert not any(tmp_path.iterdir())
 
 

@@ -98,6 +98,9 @@ def test_detector_image_refuses_what_it_would_misread():
          r"got ndarray \(an \(H, W, 3\) uint8 RGB image.* already the detector's image\)$"),
         # (a frame's .numpy() was told that it was already the detector's image)
         (frame.numpy(), TypeError, r"got ndarray \(float32 \(3, 12, 16\): torch\.from_numpy\(frame\) of a \(3, H, W\)"),
+        # (RGBA was told the shape alone; a meta frame was torch's NotImplementedError "Cannot copy out of meta tensor")
+        (torch.cat([frame, frame[:1]]), ValueError, r"got \(4, 12, 16\) \(RGBA: drop the alpha, frame\[:3\]\)$"),
+        (frame.to("meta"), ValueError, r"^frame is on device 'meta', which holds no values"),
     ):  # fmt: skip
         with pytest.raises(error, match=said):
             detector_image(bad)  # type: ignore[arg-type]
@@ -130,6 +133,43 @@ def test_a_per_image_detector_given_the_trackers_frames_names_batched(isolated_m
     with pytest.raises(TypeError, match=r"torchface.detect.batched"):  # at construction, not at the first loss
         FaceTracker(detector=detect)
     assert FaceTracker(detector=batched(detect)).detector is not None
+
+
+@pytest.mark.parametrize(
+    "make, said",
+    [
+        (lambda im: im.astype(np.float32), r"float32 \(0-255 values\? image\.round\(\)\.astype\(np\.uint8\)\)$"),
+        (lambda im: im.astype(np.int64), r"int64 \(0-255 values\? image\.astype\(np\.uint8\)\)$"),
+        (lambda im: im / 255.0, r"float64 \(floats in \[0, 1\]\? \(image \* 255\)\.round\(\)\.astype\(np\.uint8\)\)$"),
+        (lambda im: im.astype(np.uint16) * 257, r"uint16 \(16-bit: \(image / 257\)\.round\(\)\.astype\(np\.uint8\)\)$"),
+        (lambda im: im[..., 0], r"\(12, 16\) uint8 \(gray: np\.repeat\(image\[\.\.\., None\], 3, -1\)\)$"),
+        (lambda im: im[..., :1], r"\(12, 16, 1\) uint8 \(gray: np\.repeat\(image, 3, -1\)\)$"),
+        (lambda im: np.concatenate([im, im[..., :1]], -1),
+         r"\(12, 16, 4\) uint8 \(RGBA, as PIL gives it: image\[\.\.\., :3\]; OpenCV's BGRA: image\[\.\.\., 2::-1\]\)$"),
+        (lambda im: im[None], r"\(1, 12, 16, 3\) uint8 \(a batch of one: image\[0\]\)$"),
+        (lambda im: __import__("PIL.Image").Image.fromarray(im),
+         r"Image \(a PIL image: np\.asarray\(image\.convert\('RGB'\)\)\)$"),
+        (lambda im: im.tolist(), r"list$"),
+    ],
+)  # fmt: skip
+def test_a_per_image_detector_says_how_to_make_the_image_it_refuses(isolated_modules, make, said):
+    """A detector of this module takes one ``(H, W, 3)`` uint8 RGB image (docs/python-api.md). 0-255 floats (an
+    image after float arithmetic) were told "floats in [0, 1]? (image * 255)...", which wraps them past 255; a PIL
+    image, a gray, RGBA or 16-bit one, a batch of one and integer pixels were told the shape alone (a PIL image as
+    "got <class 'PIL.Image.Image'> "). Each is told how to make the image, and the way named is taken."""
+    _fake_detect_extra(isolated_modules)
+    detect = load_detector("dlib")
+    image = (np.arange(12 * 16 * 3) % 256).astype(np.uint8).reshape(12, 16, 3)
+    bad = make(image)
+    with pytest.raises(ValueError, match=r"^image must be \(H, W, 3\) uint8 RGB, got .*" + said):
+        detect(bad)
+    fixed = {
+        "float32": lambda a: a.round().astype(np.uint8), "int64": lambda a: a.astype(np.uint8),
+        "float64": lambda a: (a * 255).round().astype(np.uint8), "uint16": lambda a: (a / 257).round().astype(np.uint8),
+    }  # fmt: skip
+    if isinstance(bad, np.ndarray) and bad.dtype.name in fixed:  # (the conversion named gives the image back)
+        np.testing.assert_array_equal(fixed[bad.dtype.name](bad), image)
+        assert detect(fixed[bad.dtype.name](bad)) is None  # (the stand-in: no face)
 
 
 def test_a_batched_detector_given_one_image_names_the_per_image_detector():
@@ -224,6 +264,13 @@ def test_batched_detector_gives_a_per_image_detector_rgb_images_of_gray_frames()
         batched(detector)(gray.numpy())  # type: ignore[arg-type]
     for bad in (gray[0], (gray * 255).to(torch.uint8), gray.expand(-1, 2, -1, -1)):
         with pytest.raises(ValueError, match=r"frames must be \(B, 3, H, W\) RGB or \(B, 1, H, W\) gray, float"):
+            batched(detector)(bad)
+    # told how to make them, as the tracker's own check tells them (they were told the shape alone)
+    for bad, said in (((gray * 255).to(torch.uint8), r"\(uint8 frames: pass frames\.float\(\) / 255\)$"),
+                      (gray.expand(-1, 3, -1, -1).permute(0, 2, 3, 1),
+                       r"\(channels last \(B, H, W, C\): frames\.permute"),
+                      (gray[0].expand(3, -1, -1), r"\(one frame \(C, H, W\): frames\[None\]")):  # fmt: skip
+        with pytest.raises(ValueError, match=said):
             batched(detector)(bad)
 
 

@@ -56,6 +56,33 @@ def test_mesh_table_is_68_convex_combinations_of_mesh_vertices_symmetric_left_ri
         mesh_to_ibug68(np.zeros((68, 2)))
 
 
+def test_mesh_to_ibug68_gives_a_tensor_of_a_tensor_as_initialise_takes_it():
+    """``initialise`` refuses MediaPipe's ``(B, 478, 2)`` mesh naming ``mesh_to_ibug68`` (docs/python-api.md), which
+    made a float64 NumPy array of the tensor: ``initialise`` refused that too ("must be a torch.Tensor"), a tensor that
+    required grad raised NumPy's "Can't call numpy() on Tensor that requires grad". A tensor gives a tensor (float32
+    of float32 and float16, float64 of float64), differentiable, with the array's values."""
+    import torch
+
+    from torchface.tracker.step import check_landmark_type
+
+    rng = np.random.default_rng(0)
+    mesh = rng.uniform(100.0, 200.0, (2, 478, 2))
+    expected = mesh_to_ibug68(mesh)
+    assert isinstance(expected, np.ndarray) and expected.dtype == np.float64  # (arrays as before)
+    for dtype, want, tol in ((torch.float32, torch.float32, 1e-4), (torch.float64, torch.float64, 1e-12),
+                             (torch.float16, torch.float32, 0.2)):  # fmt: skip
+        points = torch.tensor(mesh, dtype=dtype, requires_grad=dtype != torch.float16)
+        out = mesh_to_ibug68(points)
+        assert isinstance(out, torch.Tensor) and out.dtype == want and out.shape == (2, 68, 2)
+        np.testing.assert_allclose(out.detach().double().numpy(), expected, atol=tol)
+        check_landmark_type(out, "(2, 68, 2)")  # (what initialise takes)
+    points = torch.tensor(mesh[0, :468], requires_grad=True)
+    mesh_to_ibug68(points).sum().backward()
+    assert points.grad is not None and float(points.grad.sum()) == pytest.approx(68 * 2)  # (weights sum to 1)
+    with pytest.raises(ValueError, match=r"mesh_points must be \(\.\.\., 478, D\).*got \(2, 478\)$"):
+        mesh_to_ibug68(torch.zeros(2, 478))
+
+
 def test_mirror_vertices_pairs_a_symmetric_meshs_vertices_and_refuses_an_asymmetric_one():
     rng = np.random.default_rng(0)
     half = rng.normal(size=(230, 3)) + [2.0, 0.0, 0.0]  # x > 0

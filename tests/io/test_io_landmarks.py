@@ -176,6 +176,29 @@ def test_mediapipe_face_mesh_points_are_told_the_68_ibug_points_are_wanted(tmp_p
         check_landmarks(rng.uniform(10, 90, (67, 2)), 100, 100, "clip.mp4: landmarks", missing=True)
 
 
+def test_other_landmark_sets_are_told_what_they_are_and_openposes_to_keep_its_first_68(tmp_path):
+    """Another set's points (WFLW's 98, a 106-point set's, a 5-point set's, OpenPose's 70) where the 68 iBUG points
+    are wanted were told "expected 68 iBUG landmarks, got 98 (a missing point stays, as a NaN row)", the rule of a
+    set that leaves points out. They are named, and OpenPose's 70, whose first 68 are the iBUG points in order, told
+    to keep those: what it names reads."""
+    rng = np.random.default_rng(0)
+    for n, said in ((98, r"WFLW's 98 points\? The 68 iBUG / 300-W landmarks are wanted, in their order .*: another "
+                         r"set's points are other points"),
+                    (106, r"a 106-point set's .*\? The 68 iBUG / 300-W landmarks are wanted"),
+                    (5, r"a 5-point set's .*\? .*the nose tip and the mouth corners alone are iBUG points \(30, 48, "
+                        r"54\), fewer than the 4 a start takes\)$"),
+                    (70, r"OpenPose's 70 face points\? Its first 68 are the iBUG points, in their order \(then the "
+                         r"pupils\): points\[:68\]\)$")):  # fmt: skip
+        points = rng.uniform(10, 90, (n, 2))
+        np.save(tmp_path / "lm.npy", points)
+        for call in (lambda: read_landmarks(tmp_path / "lm.npy", 100, 100),
+                     lambda: check_landmarks(points, 100, 100, "detector")):  # fmt: skip
+            with pytest.raises(InputError, match=rf"expected 68 iBUG landmarks, got {n} \({said}"):
+                call()
+    np.save(tmp_path / "lm.npy", points[:68])  # (the 70's, as told)
+    np.testing.assert_array_equal(read_landmarks(tmp_path / "lm.npy", 100, 100), points[:68])
+
+
 def test_a_wrong_count_says_how_the_callers_source_writes_a_missing_point(tmp_path):
     """With ``missing``, a wrong count's error says a missing point stays as a NaN row, in the words of the source:
     a CSV's empty cells, a ``.pts`` line ``nan nan``, an NPY's or an array's NaN row. An array (the Python API,

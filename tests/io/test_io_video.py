@@ -43,6 +43,24 @@ def test_rgb_uint8_array_round_trip(tmp_path):
     torch.testing.assert_close(out, torch.from_numpy(arr).permute(0, 3, 1, 2).float() / 255)
 
 
+def test_an_integer_array_is_told_the_unsigned_type_of_its_values(tmp_path):
+    """An ``.npy`` clip of int64 (``np.array`` of Python ints) or int32 pixels was told "unsupported pixel type int64
+    (expected uint8, uint16 or float in [0, 1])" alone; where its values fit uint8 (or uint16) it is told the
+    conversion, and the array converted so reads as the same frames."""
+    rng = np.random.default_rng(0)
+    frames = rng.integers(0, 256, (2, 40, 50, 3))  # int64
+    for array, said in ((frames, r"its values are 0-255: a\.astype\(np\.uint8\)\)$"),
+                        (frames.astype(np.int32) * 257, r"its values are 0-65535: a\.astype\(np\.uint16\)\)$"),
+                        (frames - 1, r"\(expected uint8, uint16 or float in \[0, 1\]\)$")):  # fmt: skip
+        np.save(tmp_path / "clip.npy", array)
+        with pytest.raises(InputError, match=rf"frame 0: unsupported pixel type {array.dtype} .*{said}"):
+            open_frames(tmp_path / "clip.npy")
+    np.save(tmp_path / "clip.npy", frames.astype(np.uint8))
+    with open_frames(tmp_path / "clip.npy") as reader:
+        first = next(reader)
+    torch.testing.assert_close(first, torch.from_numpy(frames[0]).permute(2, 0, 1).float() / 255)
+
+
 def test_float16_array_is_read_as_float_in_0_1(tmp_path):
     """docs/cli.md takes ``.npy`` float arrays in [0, 1]; a float16 one (half the size of float32) was refused as
     "unsupported pixel type float16 (expected uint8, uint16 or float in [0, 1])", which it is."""
@@ -138,6 +156,22 @@ def test_image_folder_16_bit_gray_and_odd_size(tmp_path):
     out = _frames(reader)
     assert out.shape == (3, 3, 40, 56)
     torch.testing.assert_close(out[:, 0, 0, 0], torch.tensor([1000.0, 2000.0, 3000.0]) / 65535)
+
+
+def test_convert_must_be_a_bool(tmp_path):
+    """``open_frames(path, convert=...)`` took any truthy value: ``convert="no"`` (or ``"False"``, from a config
+    file's text) converted the frames it was meant to refuse. It is a bool, as the settings' flags are, checked
+    before the input is opened; ``np.bool_`` (an array's element) too."""
+    for i in range(2):
+        cv2.imwrite(str(tmp_path / f"f{i:02d}.png"), np.full((40, 56), 100, dtype=np.uint8))  # gray: refused
+    for bad in ("no", "False", 0, None):
+        with pytest.raises(TypeError, match=rf"^convert must be a bool, got {type(bad).__name__} {bad!r}$"):
+            open_frames(tmp_path, convert=bad)  # type: ignore[arg-type]
+        with pytest.raises(TypeError, match="convert must be a bool"):
+            open_frames(tmp_path / "missing", convert=bad)  # type: ignore[arg-type]
+    with pytest.raises(InputError, match="grayscale"):
+        open_frames(tmp_path, convert=np.bool_(False))  # type: ignore[arg-type]
+    assert open_frames(tmp_path, convert=True).info.conversion == "uint8 gray -> RGB"
 
 
 def test_gray_frame_mid_folder_is_rejected(tmp_path):
@@ -522,3 +556,27 @@ def test_uint8_colour_frames_by_planes_are_the_whole_image_conversion(bgr, size)
     got, fmt = frame_to_tensor(array, bgr, "x", convert=h % 2 == 1)
     assert torch.equal(got, want) and got.is_contiguous() and got.dtype == torch.float32
     assert fmt == ("uint8 BGR" if bgr else "uint8 RGB")
+
+
+def test_a_missing_path_starting_with_a_tilde_is_told_that_nothing_expanded_it(tmp_path, monkeypatch):
+    """From Python no shell expands ``~``: ``open_frames("~/clip.mp4")`` and ``read_landmarks("~/lm.csv", W, H)``
+    were told "no such file or folder" / "no such landmarks file" alone, where ``torchface track`` and training_hooks'
+    datasets name the ``~``. They are told so too, also where ``os.path.expanduser`` cannot expand it; a ``~name``
+    that no home is, is a name as any other."""
+    from _helpers import without_home
+
+    from torchface.io import read_landmarks
+
+    monkeypatch.setenv("HOME", str(tmp_path))
+    monkeypatch.chdir(tmp_path)
+    tilde = r" \('~' is not expanded here: os\.path\.expanduser\(path\) names the home folder\)$"
+    with pytest.raises(InputError, match=r"^~/no_such\.mp4: no such file or folder" + tilde):
+        open_frames("~/no_such.mp4")
+    with pytest.raises(InputError, match=r"^~/no_such\.csv: no such landmarks file" + tilde):
+        read_landmarks("~/no_such.csv", 64, 48)
+    with pytest.raises(InputError, match=r"^~torchface-no-such-user\.mp4: no such file or folder$"):
+        open_frames("~torchface-no-such-user.mp4")
+    without_home(monkeypatch)
+    with pytest.raises(InputError, match=r"^~/no_such\.npy: no such file or folder \('~' is not expanded here, and "
+                                         r"os\.path\.expanduser cannot expand it here \(HOME is not set"):
+        open_frames("~/no_such.npy")

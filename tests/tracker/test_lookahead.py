@@ -546,6 +546,28 @@ def test_lookahead_fit_names_numpy_and_uint8_frames(model):
         lookahead_fit(model, CFG, (frames * 255).to(torch.uint8), lm, Intrinsics.default(W, H))
 
 
+def test_lookahead_fit_tells_a_clip_of_another_layout_how_to_make_it(model):
+    """A channels-last ``(B, T, H, W, 3)`` or RGBA clip was told the first frames' check, of ``(B, 3, H, W)``
+    frames, with its fix for those (``frames.permute(0, 3, 1, 2)``, which raises for a clip); one stream's ``(T, 3,
+    H, W)``, a clip time first ``(T, 1, 3, H, W)`` and uint8 were told the shape alone. Each is told how to make
+    the ``(B, T, 3, H, W)`` clip, and the ways named give it."""
+    clip = torch.rand(1, 2, 3, H, W)
+    lm = torch.zeros(1, model.num_landmarks, 2)
+    for bad, said, fixed in (
+        (clip.permute(0, 1, 3, 4, 2), r"\(channels last \(B, T, H, W, C\): frames\.permute\(0, 1, 4, 2, 3\)\)$",
+         lambda f: f.permute(0, 1, 4, 2, 3)),
+        (torch.cat([clip, clip[:, :, :1]], 2), r"\(RGBA: drop the alpha, frames\[:, :, :3\]\)$", lambda f: f[:, :, :3]),
+        (clip[0], r"\(one stream's clip \(T, C, H, W\): frames\[None\]\)$", lambda f: f[None]),
+        (clip.transpose(0, 1), r"\(time first, \(T, B, C, H, W\)\? frames\.transpose\(0, 1\)\)$",
+         lambda f: f.transpose(0, 1)),
+        ((clip * 255).to(torch.uint8), r"\(uint8 frames: pass frames\.float\(\) / 255\)$", lambda f: f.float() / 255),
+    ):  # fmt: skip
+        with pytest.raises(ValueError, match=r"^frames must be \(B, T, 3, H, W\) float in \[0, 1\] with T >= 2, got .*"
+                                             + said):
+            lookahead_fit(model, CFG, bad, lm, Intrinsics.default(W, H))
+        assert fixed(bad).shape == clip.shape and fixed(bad).is_floating_point()
+
+
 def test_lookahead_fit_names_a_model_or_config_of_another_type(model):
     """None (or a dict) for the model, the tracker's config or the look-ahead's config raised AttributeErrors
     ('NoneType' object has no attribute 'dtype' / 'fit' / 'max_frames'), where the other functional entry points

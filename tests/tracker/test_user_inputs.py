@@ -226,6 +226,33 @@ def test_landmark_weights_of_one_stream_or_with_a_trailing_axis_are_told_how_to_
     assert int(FaceTracker(CFG).initialise(frames[:1], lm[None], weights=w[None, :, None][..., 0]).status) == CONVERGED
 
 
+def test_landmark_weights_that_are_not_a_tensor_are_told_how_to_make_one(clip):
+    """NumPy or list weights were told "weights must be a (1, 68) tensor or None, got ndarray" alone, where landmarks
+    of those types are told how to make a tensor (docs/python-api.md); by ``initialise``, ``fit_landmarks`` and
+    ``pyramid_for_faces``. The way named starts the streams."""
+    import numpy as np
+
+    from torchface.geometry import Intrinsics
+    from torchface.model import load_candide3
+    from torchface.tracker import fit_landmarks, pyramid_for_faces
+
+    frames, lm = clip
+    w = np.ones(68)
+    with pytest.raises(TypeError, match=r"^weights must be a \(1, 68\) tensor or None, got ndarray \(a NumPy array: "
+                                        r"torch\.from_numpy\(weights\)\[None\]\)$"):
+        FaceTracker(CFG).initialise(frames[:1], lm[None], weights=w)  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match=r"got ndarray \(a NumPy array: torch\.from_numpy\(weights\)\[None\]\.expand"
+                                        r"\(2, -1\)\)$"):
+        FaceTracker(CFG).initialise(frames[:2], torch.stack([lm, lm]), weights=w)  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match=r"got list \(a list: torch\.tensor\(weights\), laid out \(1, 68\)\)$"):
+        fit_landmarks(load_candide3(), lm[None], Intrinsics.default(W, H),
+                      weights=[[1.0] * 68])  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match=r"got ndarray \(a NumPy array: torch\.from_numpy\(weights\)\)$"):
+        pyramid_for_faces(CFG, lm[None], (H, W), w[None])  # type: ignore[arg-type]
+    made = torch.from_numpy(w)[None]
+    assert int(FaceTracker(CFG).initialise(frames[:1], lm[None], weights=made).status) == CONVERGED
+
+
 def test_intrinsics_that_look_mixed_up_are_named_and_tracked(clip):
     """Intrinsics in OpenCV's matrix order (``fx, cx, fy, cy`` for ``fx, fy, cx, cy``) were tracked without a word
     (a camera that sees the face 2x stretched); a size swapped or given among the other numbers was told the size
@@ -529,6 +556,73 @@ def test_a_first_call_with_landmarks_or_a_clip_is_told_what_to_pass(clip):
     assert bool(tracker(frames[None][:, 1]).success)
 
 
+def test_landmarks_of_every_frame_of_a_clip_are_told_to_take_the_first_frames(clip):
+    """The landmarks of a clip, ``(T, K, 2)`` for one stream (``GroundTruth.landmarks_px``, a detector run over every
+    frame) or ``(T, B, K, 2)`` for ``B``, were told the shape alone, where ``torchface track`` tells such a file to
+    take the first frame's set; ``(N, K, 2)`` may also be N faces of the one frame given, a stream each. The message
+    names them, and what it names starts the streams."""
+    frames, lm = clip
+    per_frame = torch.stack([lm, lm + 1.0, lm + 2.0])  # (T, K, 2)
+    with pytest.raises(ValueError, match=r"^landmarks_px must be \(B, K, 2\) with B = 1 \(one set per frame\), got "
+                                         r"\(3, 68, 2\): a set per frame of a clip\? the first frame's, "
+                                         r"landmarks_px\[:1\]; 3 faces in this frame\? a stream each, "
+                                         r"frames\.expand\(3, -1, -1, -1\)$"):
+        FaceTracker(CFG).initialise(frames[:1], per_frame)
+    assert bool(FaceTracker(CFG).initialise(frames[:1], per_frame[:1]).success)
+    assert FaceTracker(CFG).initialise(frames[:1].expand(3, -1, -1, -1), per_frame).success.all()
+    two = per_frame[:, None].expand(-1, 2, -1, -1)  # (T, B, K, 2)
+    with pytest.raises(ValueError, match=r"with B = 2 \(one set per frame\), got \(3, 2, 68, 2\): a set per frame\? "
+                                         r"the first frame's, landmarks_px\[0\]$"):
+        FaceTracker(CFG).initialise(frames[:1].expand(2, -1, -1, -1), two)
+    assert FaceTracker(CFG).initialise(frames[:1].expand(2, -1, -1, -1), two[0]).success.all()
+    # the frames of a clip given as the batch with the first frame's landmarks: "one set per frame" read as if a set
+    # for each frame were wanted (each frame then a stream of its own, started afresh)
+    with pytest.raises(ValueError, match=r"with B = 3 \(one set per frame\), got \(1, 68, 2\): the frames of one "
+                                         r"video\? initialise takes its first, frames\[:1\], and each later frame is a "
+                                         r"call of its own, tracker\(frames\[t : t \+ 1\]\); 3 streams of this face: "
+                                         r"landmarks_px\.expand\(3, -1, -1\)$"):
+        FaceTracker(CFG).initialise(frames, lm[None])
+    tracker = FaceTracker(CFG)
+    assert bool(tracker.initialise(frames[:1], lm[None]).success) and bool(tracker(frames[1:2]).success)
+
+
+def test_another_landmark_set_is_named_and_openposes_70_told_to_keep_its_first_68(clip):
+    """``initialise`` given OpenPose's ``(B, 70, 3)`` face keypoints (x, y, confidence; the 68 iBUG points, then the
+    pupils) or WFLW's ``(B, 98, 2)`` said the shape alone. Each is named; what it names for OpenPose's starts."""
+    frames, lm = clip
+    openpose = torch.cat([torch.cat([lm, lm[36:38]]), torch.ones(70, 1)], -1)[None]  # (1, 70, 3)
+    with pytest.raises(ValueError, match=r"got \(1, 70, 3\) \(OpenPose's 70 face points\? Its first 68 are the iBUG "
+                                         r"points, in their order \(then the pupils\): landmarks_px\[:, :68, :2\]\)$"):
+        FaceTracker(CFG).initialise(frames[:1], openpose)
+    assert bool(FaceTracker(CFG).initialise(frames[:1], openpose[:, :68, :2]).success)
+    with pytest.raises(ValueError, match=r"got \(1, 98, 2\) \(WFLW's 98 points\? The 68 iBUG / 300-W landmarks"):
+        FaceTracker(CFG).initialise(frames[:1], torch.rand(1, 98, 2) * 100)
+
+
+def test_an_iterator_of_frames_is_told_to_give_one_frame_per_call(clip, tmp_path):
+    """A generator of frames, or ``open_frames``' reader itself, given to ``initialise`` or a step was told "got
+    generator" (``FrameReader``) alone, where a list is told to stack it. It is told to give one frame per call (and
+    what stacking them makes), and what it names tracks."""
+    import numpy as np
+
+    from torchface.io import open_frames
+
+    frames, lm = clip
+    np.save(tmp_path / "clip.npy", frames.permute(0, 2, 3, 1).numpy())
+    said = (r"got {} \(an iterator of frames: one per call, next\(frames\)\[None\] of \(3, H, W\) frames; or "
+            r"torch\.stack\(list\(frames\)\), one frame per stream\)$")
+    tracker = FaceTracker(CFG)
+    with pytest.raises(TypeError, match=said.format("generator")):
+        tracker.initialise((f for f in frames[:1]), lm[None])  # type: ignore[arg-type]
+    with open_frames(tmp_path / "clip.npy") as reader:
+        with pytest.raises(TypeError, match=said.format("FrameReader")):
+            tracker.initialise(reader, lm[None])  # type: ignore[arg-type]
+        assert bool(tracker.initialise(next(reader)[None], lm[None]).success)
+        with pytest.raises(TypeError, match=said.format("FrameReader")):
+            tracker(reader)  # type: ignore[arg-type]
+        assert bool(tracker(next(reader)[None]).success)
+
+
 def test_a_choice_given_as_a_string_is_told_the_member_to_pass():
     """``TrackerConfig(solver="fast")`` was "solver must be a TrackSolver, got 'fast'" (``robust="huber"``: "got str"),
     and ``TrackSolver`` and ``TemplateConfig``, which docs/python-api.md names among the settings, did not import from
@@ -654,3 +748,37 @@ def test_many_levels_asked_for_a_tiny_face_fail_its_start_without_a_crash():
     first = tracker.initialise(frames[:1], tiny[None])
     assert int(first.status) == FAILED and int(first.start_failure) == int(StartFailure.FACE_TOO_SMALL)
     assert tracker.state.num_levels == 8 and int(tracker(frames[1:2]).status) == LOST
+
+
+def test_a_stream_may_take_gray_and_rgb_frames_at_its_online_start():
+    """Frames are ``(B, 3, H, W)`` RGB or ``(B, 1, H, W)`` gray at every call (docs/python-api.md; a stream keeps its
+    size and batch, nothing more). A stream started on RGB frames and stepped on gray ones (or the other way round)
+    crashed at the online start's re-anchoring, where its first frame and its keyframe were stacked: torch.stack's
+    "expects each tensor to be equal size". Both are made gray there, as the refinement makes them: the run
+    re-anchors and follows the turn as the same frames all given gray do."""
+    from torchface.appearance.sampling import to_gray
+    from torchface.geometry.so3 import geodesic_angle_deg
+    from torchface.synth import render_sequence
+    from torchface.tracker.lookahead import LookaheadConfig
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    from _helpers import candide_spec
+
+    yaw = [0.0, 6.0, 12.0, 12.0]
+    rgb, gt = render_sequence(candide_spec("turn", [[y, 0.0, 0.0] for y in yaw], [[0.0, 0.0, 450.0]] * 4, W, H))
+    gray, lm = to_gray(rgb), gt.landmarks_px[:1].float()
+    la = LookaheadConfig(iterations=(4, 3), max_points=800)
+
+    def run(first: torch.Tensor, rest: torch.Tensor) -> tuple[FaceTracker, list]:
+        tracker = FaceTracker(CFG, refine_first=la)
+        results = [tracker.initialise(first[:1], lm)] + [tracker(rest[i : i + 1]) for i in range(1, len(yaw))]
+        return tracker, results
+
+    _, same = run(gray, gray)
+    for first, rest in ((rgb, gray), (gray, rgb)):
+        tracker, results = run(first, rest)
+        ms = tracker.state.management
+        assert ms.first is None and ms.head_rotation is not None  # (re-anchored: the wait is over)
+        assert all(bool(r.success) for r in results)
+        for r, s in zip(results, same):
+            assert float(geodesic_angle_deg(r.rotation, s.rotation)) < 0.05

@@ -299,6 +299,9 @@ def test_landmarks_with_too_few_points_half_nan_rows_or_infinite_values_are_refu
     mesh = re.escape("expected 68 iBUG landmarks, got 478 (MediaPipe's face mesh points? The 68 iBUG")
     with pytest.raises(InputError, match=rf"^{re.escape(str(clip.video))}: landmarks: {mesh}"):
         VideoDataset([clip.video], [np.full((478, 2), 50.0)], cfg)
+    wflw = re.escape("expected 68 iBUG landmarks, got 98 (WFLW's 98 points? The 68 iBUG")  # (was the NaN row's rule)
+    with pytest.raises(InputError, match=rf"^{re.escape(str(clip.video))}: landmarks: {wflw}"):
+        VideoDataset([clip.video], [np.full((98, 2), 50.0)], cfg)
     four = np.full((68, 2), np.nan)
     four[[30, 36, 45, 48]] = clip.landmarks[[30, 36, 45, 48]]
     assert len(list(VideoDataset([clip.video], [four], cfg))) == FRAMES  # (the fit's minimum: tracked)

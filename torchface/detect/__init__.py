@@ -122,15 +122,43 @@ def _check_image(image_rgb: np.ndarray) -> None:
         )
     ok = isinstance(image_rgb, np.ndarray) and image_rgb.ndim == 3 and image_rgb.shape[2] == 3
     if not ok or image_rgb.dtype != np.uint8:
-        hint = ""
-        if isinstance(image_rgb, np.ndarray) and image_rgb.ndim == 3 and image_rgb.shape[0] in (1, 3) and not ok:
-            hint = " (channels first? image.transpose(1, 2, 0))"
-        elif ok and image_rgb.dtype.kind == "f":
-            hint = " (floats in [0, 1]? (image * 255).round().astype(np.uint8))"
-        raise ValueError(
-            f"image must be (H, W, 3) uint8 RGB, got {getattr(image_rgb, 'shape', type(image_rgb))} "
-            f"{getattr(image_rgb, 'dtype', '')}{hint}"
-        )
+        # (not an array: its type's name; it read "got <class 'list'> ", with a space before the hint's)
+        got = f"{image_rgb.shape} {image_rgb.dtype}" if isinstance(image_rgb, np.ndarray) else type(image_rgb).__name__
+        raise ValueError(f"image must be (H, W, 3) uint8 RGB, got {got}{_image_hint(image_rgb)}")
+
+
+def _image_hint(image: object) -> str:
+    """How to make a refused ``image`` the ``(H, W, 3)`` uint8 RGB one a :class:`Detector` takes, as `` (...)``
+    ("" where nothing fits): :func:`_check_image`'s words. A PIL image, a gray or RGBA one, a batch of one, 16-bit
+    or integer pixels, and 0-255 floats were told the shape alone, or (0-255 floats) to multiply them by 255."""
+    if type(image).__module__.startswith("PIL."):  # (told "got <class 'PIL.Image.Image'>")
+        return " (a PIL image: np.asarray(image.convert('RGB')))"
+    if not isinstance(image, np.ndarray):
+        return ""
+    shape = image.shape
+    if image.ndim == 3 and shape[0] in (1, 3) and shape[2] not in (1, 3, 4):
+        return " (channels first? image.transpose(1, 2, 0))"
+    if image.ndim == 2 or (image.ndim == 3 and shape[2] == 1):
+        gray = "image[..., None]" if image.ndim == 2 else "image"
+        return f" (gray: np.repeat({gray}, 3, -1))"
+    if image.ndim == 3 and shape[2] == 4:
+        return " (RGBA, as PIL gives it: image[..., :3]; OpenCV's BGRA: image[..., 2::-1])"
+    if image.ndim == 4 and shape[0] == 1:
+        return " (a batch of one: image[0])"
+    if image.ndim != 3 or shape[2] != 3 or image.size == 0:
+        return ""
+    if image.dtype == np.uint16:
+        return " (16-bit: (image / 257).round().astype(np.uint8))"
+    if image.dtype.kind not in "fiu":
+        return ""
+    finite = image[np.isfinite(image)] if image.dtype.kind == "f" else image
+    high = float(finite.max()) if finite.size else 0.0
+    if image.dtype.kind == "f" and high <= 1.5:  # (FRAME_VALUE_RANGE's top: a [0, 1] frame's overshoot)
+        return " (floats in [0, 1]? (image * 255).round().astype(np.uint8))"
+    if high <= 255 and float(finite.min()) >= 0:  # (0-255 floats were told to multiply by 255: values past 255)
+        rounded = ".round()" if image.dtype.kind == "f" else ""
+        return f" (0-255 values? image{rounded}.astype(np.uint8))"
+    return ""
 
 
 def _predictor_path() -> Path | None:
@@ -339,7 +367,11 @@ def detector_image(frame: "Tensor") -> np.ndarray:
             hint = " (gray (1, H, W): frame.expand(3, -1, -1))"
         elif len(shape) == 2:
             hint = " (gray (H, W): frame.expand(3, -1, -1))"
+        elif len(shape) == 3 and shape[0] == 4:  # (told the shape alone)
+            hint = " (RGBA: drop the alpha, frame[:3])"
         raise ValueError(f"frame must be (3, H, W) RGB, got {shape}{hint}")
+    if frame.device.type == "meta":  # (torch's NotImplementedError "Cannot copy out of meta tensor; no data!")
+        raise ValueError("frame is on device 'meta', which holds no values: pass it on a device that computes")
     if not frame.is_floating_point():
         hint = " (uint8: frame.float() / 255)" if frame.dtype == torch.uint8 else ""
         raise ValueError(f"frame must be float in [0, 1], got {frame.dtype}{hint}")
@@ -456,8 +488,10 @@ class _Batched:
             raise TypeError(f"frames must be a torch.Tensor (B, 3, H, W) RGB or (B, 1, H, W) gray, float in [0, 1], "
                             f"got {type(frames).__name__}")  # fmt: skip
         if frames.dim() != 4 or frames.shape[1] not in (1, 3) or not frames.is_floating_point():
+            from torchface.tracker.step import _frame_hint  # (the tracker's words: uint8, channels last, RGBA, ...)
+
             raise ValueError(f"frames must be (B, 3, H, W) RGB or (B, 1, H, W) gray, float in [0, 1], got "
-                             f"{tuple(frames.shape)} {frames.dtype}")  # fmt: skip
+                             f"{tuple(frames.shape)} {frames.dtype}{_frame_hint(frames)}")  # fmt: skip
         if frames.shape[1] == 1:  # gray frames (the tracker takes them): the per-image detector takes RGB images
             frames = frames.expand(-1, 3, -1, -1)
         # At least float32 (float64 frames: float64): in half-precision frames' dtype the landmarks were rounded to

@@ -26,7 +26,7 @@ import weakref
 from importlib import resources
 from pathlib import Path
 from collections.abc import Iterator, Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any, TypeVar, cast
 
 import numpy as np
 
@@ -44,6 +44,12 @@ __all__ = [
     "MESH_POINTS", "MODEL_ENV", "MediaPipeDetector", "canonical_mesh", "find_model", "mesh_pixels", "mesh_to_ibug68",
     "mirror_vertices", "read_mesh_table",
 ]  # fmt: skip
+
+if TYPE_CHECKING:
+    import torch
+
+#: :func:`mesh_to_ibug68`'s points: a tensor gives a tensor, an array (or a list) an array.
+_Mesh = TypeVar("_Mesh", "torch.Tensor", np.ndarray)
 
 #: Points of one FaceLandmarker face: 468 mesh vertices and 10 iris points (468-472, 473-477).
 MESH_POINTS = 478
@@ -156,9 +162,12 @@ def mesh_pixels(face_landmarks: Sequence[Sequence[Any]], width: int, height: int
 _TABLE: tuple[np.ndarray, np.ndarray] | None = None
 
 
-def mesh_to_ibug68(mesh_points: np.ndarray) -> np.ndarray:
-    """FaceLandmarker's points ``(..., 478, D)`` -> the 68 iBUG points ``(..., 68, D)`` (float64), by
-    :func:`read_mesh_table`'s weights.
+def mesh_to_ibug68(mesh_points: _Mesh) -> _Mesh:
+    """FaceLandmarker's points ``(..., 478, D)`` -> the 68 iBUG points ``(..., 68, D)``, by :func:`read_mesh_table`'s
+    weights: a NumPy array (or a list) as a float64 array; a tensor as a tensor, what ``initialise`` takes (device
+    kept, differentiable; float64 stays float64, other dtypes give float32). A tensor was made a float64 array: the
+    mesh that ``initialise`` refused, naming this function, came back an array that it refused too (a CUDA tensor, or
+    one that required grad, raised NumPy's error).
 
     Example:
         >>> mesh = np.zeros((478, 2)); mesh[152] = [10.0, 20.0]  # the chin's vertex
@@ -166,14 +175,31 @@ def mesh_to_ibug68(mesh_points: np.ndarray) -> np.ndarray:
         [10.0, 20.0]
     """
     global _TABLE
-    points = np.asarray(mesh_points, dtype=np.float64)
-    if points.ndim < 2 or points.shape[-2] not in (468, MESH_POINTS):
+    torch_module = sys.modules.get("torch")  # (a tensor's module is loaded wherever there is a tensor)
+    tensor = torch_module is not None and isinstance(mesh_points, torch_module.Tensor)
+    shape = tuple(mesh_points.shape) if tensor else np.shape(mesh_points)
+    if len(shape) < 2 or shape[-2] not in (468, MESH_POINTS):
         raise ValueError(f"mesh_points must be (..., {MESH_POINTS}, D) (or 468: without the iris points, which the "
-                         f"table does not use), got {points.shape}")  # fmt: skip
+                         f"table does not use), got {shape}")  # fmt: skip
     if _TABLE is None:
         _TABLE = read_mesh_table()[:2]
     idx, wts = _TABLE
-    return np.einsum("kj,...kjd->...kd", wts, points[..., idx, :])
+    if tensor:
+        return cast(_Mesh, _tensor_mesh_to_ibug68(cast("torch.Tensor", mesh_points), idx, wts))
+    points = np.asarray(mesh_points, dtype=np.float64)
+    return cast(_Mesh, np.einsum("kj,...kjd->...kd", wts, points[..., idx, :]))
+
+
+def _tensor_mesh_to_ibug68(mesh_points: "torch.Tensor", idx: np.ndarray, wts: np.ndarray) -> "torch.Tensor":
+    """:func:`mesh_to_ibug68` of a tensor, by the table's indices ``idx`` and weights ``wts`` ``(68, 3)``: float64
+    of float64, else float32, on its device."""
+    import torch
+
+    dtype = torch.float64 if mesh_points.dtype == torch.float64 else torch.float32
+    points = mesh_points.to(dtype)
+    index = torch.as_tensor(idx, device=points.device)
+    return torch.einsum("kj,...kjd->...kd", torch.as_tensor(wts, dtype=dtype, device=points.device),
+                        points[..., index, :])  # fmt: skip
 
 
 def canonical_mesh(model: str | os.PathLike[str] | None = None) -> np.ndarray:

@@ -71,10 +71,11 @@ from typing import TYPE_CHECKING, TypeVar
 
 import numpy as np
 
+from torchface._paths import missing_path_hint
 from torchface._words import counted
 from torchface.conventions import (
     IBUG68_MIRROR, MEDIAPIPE_MESH_HINT, MEDIAPIPE_MESH_POINT_COUNTS, NORMALISED_CHECK_MIN_SIDE,
-    NORMALISED_LANDMARK_MAX_SPAN, NORMALISED_LANDMARK_RANGE,
+    NORMALISED_LANDMARK_MAX_SPAN, NORMALISED_LANDMARK_RANGE, other_landmark_set_hint,
 )
 from torchface.io.errors import InputError
 
@@ -816,6 +817,9 @@ def check_landmarks(
         what = "iBUG landmarks" if count == NUM_LANDMARKS else "landmarks (the face model's)"
         if count == NUM_LANDMARKS and points.shape[0] in MEDIAPIPE_MESH_POINT_COUNTS:  # (told the count alone)
             hint = f" ({MEDIAPIPE_MESH_HINT})"
+        other = other_landmark_set_hint(points.shape[0], "points[:68]") if count == NUM_LANDMARKS else None
+        if other is not None:  # (WFLW's 98 points were told that a missing point stays as a NaN row)
+            hint = f" ({other})"
         raise InputError(f"{where}: expected {count} {what}, got {points.shape[0]}{hint}")
     given = np.isfinite(points).all(axis=1)
     if not missing and not given.all():
@@ -893,7 +897,8 @@ def read_landmarks(
     _check_frame_size(width, height)  # (before the file is read: a caller's mistake, whatever the file holds)
     p = Path(path)
     if not p.is_file():
-        raise InputError(f"{p}: {'a folder, not a landmarks file' if p.is_dir() else 'no such landmarks file'}")
+        raise InputError(f"{p}: a folder, not a landmarks file" if p.is_dir()
+                         else f"{p}: no such landmarks file{missing_path_hint(path)}")  # fmt: skip
     if p.suffix.lower() == ".npy":
         try:
             points = np.load(p, allow_pickle=False)

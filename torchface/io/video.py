@@ -48,8 +48,9 @@ import torch
 from torch import Tensor
 
 from torchface._frame_values import value_scale, value_scale_hint
+from torchface._paths import missing_path_hint
 from torchface._words import counted
-from torchface.geometry._checks import check_number
+from torchface.geometry._checks import check_bool, check_number
 from torchface.io.errors import InputError
 
 __all__ = [
@@ -260,7 +261,13 @@ def frame_to_tensor(array: np.ndarray, bgr: bool, where: str, convert: bool = Fa
     """
     array = _layout(array, where)
     if array.dtype not in (np.uint8, np.uint16, np.float16, np.float32, np.float64):  # (float16: a half .npy clip)
-        raise InputError(f"{where}: unsupported pixel type {array.dtype} (expected uint8, uint16 or float in [0, 1])")
+        hint = ""
+        if array.dtype.kind in "iu" and array.size and int(array.min()) >= 0 and int(array.max()) <= 65535:
+            # (an array of Python ints, np.array(rows), is int64: told the type alone)
+            small = int(array.max()) <= 255
+            hint = f"; its values are {'0-255' if small else '0-65535'}: a.astype(np.{'uint8' if small else 'uint16'})"
+        raise InputError(f"{where}: unsupported pixel type {array.dtype} (expected uint8, uint16 or float in [0, 1]"
+                         f"{hint})")  # fmt: skip
     if array.dtype.kind == "f" and not (np.isfinite(array).all() and array.min() >= 0.0 and array.max() <= 1.0):
         raise InputError(f"{where}: float frames must be finite and in [0, 1], {_float_range_problem(array)}")
     problems = format_problems(array)
@@ -582,14 +589,17 @@ def open_frames(path: str | os.PathLike[str], convert: bool = False, fps: float 
         InputError: missing path, nothing decodable, zero frames, an unsupported frame format, a frame
             smaller than :data:`MIN_SIZE`, or (without ``convert``) a grayscale, RGBA, 16-bit or odd-sized
             first frame.
+        TypeError: ``convert`` not a bool (``"no"`` was taken as true), ``fps`` not a real number.
+        ValueError: ``fps`` not finite and > 0.
 
     Example:
         >>> # with open_frames("clip.mp4") as frames: first = next(frames)   # (3, H, W)
     """
     fps = check_number(fps, "fps", "(0, inf)", True, "frames per second")  # (before the input is opened)
+    convert = check_bool(convert, "convert")  # (open_frames(path, "no") converted: any truthy value did)
     p = Path(path)
     if not p.exists():
-        raise InputError(f"{p}: no such file or folder")
+        raise InputError(f"{p}: no such file or folder{missing_path_hint(path)}")
     if p.is_dir():
         files = image_files(p)
         if not files:

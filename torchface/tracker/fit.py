@@ -447,6 +447,19 @@ def _weights_shape_hint(got: tuple[int, ...], batch: int, count: int) -> str:
     return ""
 
 
+def _weights_type_hint(weights: object, batch: int, count: int) -> str:
+    """How to make ``(batch, count)`` tensor weights of ``weights`` that are not a tensor, for the ``TypeError`` that
+    refuses them, as `` (...)``: a NumPy array (``(K,)``: one stream's) or a list, as landmarks are told (they were
+    told the type alone); empty otherwise."""
+    shape = getattr(weights, "shape", None)
+    if type(weights).__name__ == "ndarray" and isinstance(shape, tuple):
+        each = "" if shape != (count,) else "[None]" if batch == 1 else f"[None].expand({batch}, -1)"
+        return f" (a NumPy array: torch.from_numpy(weights){each})"
+    if isinstance(weights, (list, tuple)):
+        return f" (a {type(weights).__name__}: torch.tensor(weights), laid out ({batch}, {count}))"
+    return ""
+
+
 def check_landmark_values(
     landmarks_px: Tensor, weights: Tensor | None = None, *, name: str = "landmarks_px", weights_name: str = "weights"
 ) -> None:
@@ -632,7 +645,8 @@ def _check_landmarks(
         raise ValueError(f"landmarks_px must be (B, {k}, 2) pixel coordinates, got {got}{hint}")
     B = landmarks_px.shape[0]
     if weights is not None and not isinstance(weights, Tensor):  # a list or numpy array: an AttributeError
-        raise TypeError(f"weights must be a ({B}, {k}) tensor or None, got {type(weights).__name__}")
+        raise TypeError(f"weights must be a ({B}, {k}) tensor or None, got {type(weights).__name__}"
+                        f"{_weights_type_hint(weights, B, k)}")  # fmt: skip
     if weights is not None and weights.shape != (B, k):
         raise ValueError(f"weights must be (B, K) = ({B}, {k}), got {tuple(weights.shape)}"
                          f"{_weights_shape_hint(tuple(weights.shape), B, k)}")  # fmt: skip

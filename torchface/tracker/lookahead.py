@@ -948,6 +948,27 @@ def _refine_starts(
     return refined, key_R.to(out_dt), key_t.to(out_dt)
 
 
+def _clip_hint(frames: Tensor) -> str:
+    """How to make refused clips ``(B, T, 3, H, W)`` float in [0, 1] (:func:`lookahead_fit`'s message), as
+    `` (...)``: one stream's ``(T, C, H, W)``, time first, channels last, RGBA, integer pixels; "" where nothing
+    fits."""
+    hints = []
+    shape = tuple(frames.shape)
+    if len(shape) == 4 and shape[1] in (1, 3):
+        hints.append("one stream's clip (T, C, H, W): frames[None]")
+    elif len(shape) == 5 and shape[2] not in (1, 3, 4) and shape[-1] in (1, 3, 4):
+        hints.append("channels last (B, T, H, W, C): frames.permute(0, 1, 4, 2, 3)")
+    elif len(shape) == 5 and shape[2] == 4:
+        hints.append("RGBA: drop the alpha, frames[:, :, :3]")
+    elif len(shape) == 5 and shape[1] == 1 and shape[0] >= 2:
+        hints.append("time first, (T, B, C, H, W)? frames.transpose(0, 1)")
+    if frames.dtype == torch.uint8:
+        hints.append("uint8 frames: pass frames.float() / 255")
+    elif not frames.is_floating_point():
+        hints.append("convert them to float in [0, 1]")
+    return f" ({'; '.join(hints)})" if hints else ""
+
+
 @full_precision
 def lookahead_fit(
     model: FaceModel,
@@ -985,9 +1006,11 @@ def lookahead_fit(
     check_model_units(config, model, "config")  # (refine_first_fit's checks, before the frames are tracked ahead)
     if not isinstance(frames, Tensor):  # a numpy array was "must be (B, T, 3, H, W) ..., got (B, T, 3, H, W)"
         raise TypeError(f"frames must be a torch.Tensor (B, T, 3, H, W) float in [0, 1], got {type(frames).__name__}")
-    if frames.dim() != 5 or frames.shape[1] < 2 or not frames.is_floating_point():  # uint8 went on as 0-255 floats
+    if frames.dim() != 5 or frames.shape[1] < 2 or frames.shape[2] not in (1, 3) or not frames.is_floating_point():
+        # (uint8 went on as 0-255 floats; channels-last and RGBA clips were told the first frames' check, of (B, 3,
+        # H, W), with its fix for those, which raised for the clip; the rest were told the shape alone)
         raise ValueError(f"frames must be (B, T, 3, H, W) float in [0, 1] with T >= 2, got {tuple(frames.shape)} "
-                         f"{frames.dtype}")  # fmt: skip
+                         f"{frames.dtype}{_clip_hint(frames)}")  # fmt: skip
     B = frames.shape[0]
     frames = frames.to(dtype=model.dtype, device=model.device)
     fc = tracker_config.fit

@@ -62,7 +62,7 @@ from torch import Tensor
 from torchface._autocast import full_precision
 from torchface import _native
 from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS, remove_illumination
-from torchface.appearance.sampling import sample_at_pixels
+from torchface.appearance.sampling import sample_at_pixels, to_gray
 from torchface.backend import Backend, use_native
 from torchface.conventions import NORMALISED_LANDMARK_RANGE
 from torchface.geometry.camera import Intrinsics
@@ -1774,8 +1774,13 @@ def _reanchor(
         def start(b: int) -> _Start:
             ks = keys[b]
             weights = None if w.weights is None else w.weights[b]
+            seen = [w.frame0[b]] + [k[0] for k in ks]
+            if len({f.shape[0] for f in seen}) > 1:  # RGB and gray frames in one stream (each step takes either): all
+                # made gray as the refinement makes them, in its float64 (torch.stack's "expects each tensor to be
+                # equal size" ended the step); a stream of one kind is refined as before, to the bit
+                seen = [to_gray(f[None].to(torch.float64))[0] for f in seen]
             return _stream_start(
-                model, torch.stack([w.frame0[b]] + [k[0] for k in ks]), state.intrinsics, w.landmarks[b],
+                model, torch.stack(seen), state.intrinsics, w.landmarks[b],
                 w.fit.select(slice(b, b + 1)), torch.stack([k[1] for k in ks]), torch.stack([k[2] for k in ks]),
                 key_expression=torch.stack([k[3] for k in ks]), landmark_weights=weights, config=la,
                 backend=config.backend, **landmark_fit_priors(model, fc, state.intrinsics, w.landmarks[b], weights),

@@ -14,7 +14,7 @@ import functools
 import math
 import threading
 import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, cast
 
@@ -30,7 +30,9 @@ from torchface._scalar import scalar
 from torchface.appearance.illumination import ILLUMINATION_TERM_NAMES, NUM_ILLUMINATION_TERMS, illumination_basis
 from torchface.appearance.sampling import image_with_gradients, pyr_down, sample_at_pixels, to_gray
 from torchface.backend import Backend, use_native
-from torchface.conventions import MEDIAPIPE_MESH_HINT, MEDIAPIPE_MESH_POINT_COUNTS, NEAR_PLANE_MM
+from torchface.conventions import (
+    MEDIAPIPE_MESH_HINT, MEDIAPIPE_MESH_POINT_COUNTS, NEAR_PLANE_MM, other_landmark_set_hint,
+)
 from torchface.geometry._checks import (
     check_bool, check_choice, check_int, check_intrinsics, check_ints, check_number, check_reals,
 )
@@ -46,9 +48,9 @@ from torchface.template.management import TemplateConfig
 from torchface.template.points import Template, _of_dtype, build_template
 from torchface.tracker.fast import FUNCTION_TOLERANCE, STEP_TOLERANCE, LevelCamera, robust_scale_of, solve_level
 from torchface.tracker.fit import (
-    MIN_FIT_LANDMARKS, FitConfig, LandmarkFit, _landmark_width_mm, _weights_shape_hint, check_landmark_type,
-    check_landmark_values, check_model_landmarks, check_pixel_landmarks, fit_landmarks, landmark_targets,
-    normalised_streams,
+    MIN_FIT_LANDMARKS, FitConfig, LandmarkFit, _landmark_width_mm, _weights_shape_hint, _weights_type_hint,
+    check_landmark_type, check_landmark_values, check_model_landmarks, check_pixel_landmarks, fit_landmarks,
+    landmark_targets, normalised_streams,
 )
 from torchface.tracker.inference import without_autograd
 from torchface.tracker.objective import frame_residuals, warp_points
@@ -885,7 +887,8 @@ def not_tensor_hint(
     its message, empty where nothing is to say (:func:`check_frames`'; ``training_hooks.NormaliseFaces``', and
     ``training_hooks.track_sequence``'s for each streamed frame). It covers a NumPy image as OpenCV reads it,
     ``(H, W, 3)`` uint8 BGR (the common case: the message said "got ndarray" alone), NumPy frames ``(N, H, W, 3)``,
-    a gray image ``(H, W)``, another NumPy array, and a list of frames.
+    a gray image ``(H, W)``, another NumPy array, a list of frames and an iterator of them (a generator,
+    :func:`torchface.io.open_frames`' reader: for the tracker's ``per``, one frame per call too).
 
     Args:
         frames: what was passed.
@@ -909,6 +912,10 @@ def not_tensor_hint(
     """
     if isinstance(frames, (list, tuple)):
         return "" if one_frame else f" (a {type(frames).__name__} of frames: torch.stack(frames), {per})"
+    if isinstance(frames, Iterator) and not one_frame:  # (a generator, open_frames' reader: told the type alone)
+        # (the tracker's, per frame: a video's frames, one call each; stacked, they are streams)
+        each = " one per call, next(frames)[None] of (3, H, W) frames; or" if per == "one frame per stream" else ""
+        return f" (an iterator of frames:{each} torch.stack(list(frames)), {per})"
     shape, dtype = getattr(frames, "shape", None), str(getattr(frames, "dtype", ""))
     if type(frames).__name__ != "ndarray" or not isinstance(shape, tuple):
         return ""
@@ -1068,6 +1075,17 @@ def check_initialise_inputs(
         got = tuple(landmarks_px.shape)
         # (a (K, 2) set for one stream, as a landmark file holds it, was told no more than that)
         hint = ": one stream's, landmarks_px[None]" if B == 1 and got == (K, 2) else ""
+        if B == 1 and len(got) == 3 and got[1:] == (K, 2):  # (a clip's, as GroundTruth.landmarks_px: told no more)
+            n = got[0]
+            hint = (f": a set per frame of a clip? the first frame's, landmarks_px[:1]; {n} faces in this frame? a "
+                    f"stream each, frames.expand({n}, -1, -1, -1)")  # fmt: skip
+        elif len(got) == 4 and got[1:] == (B, K, 2):  # ((T, B, K, 2): the streams' clips)
+            hint = ": a set per frame? the first frame's, landmarks_px[0]"
+        elif B > 1 and got == (1, K, 2):  # (a clip's frames given as the batch: "one set per frame" read as if a set
+            # for each of its frames were wanted, which starts each frame as a stream of its own)
+            hint = (f": the frames of one video? initialise takes its first, frames[:1], and each later frame is a "
+                    f"call of its own, tracker(frames[t : t + 1]); {B} streams of this face: landmarks_px.expand({B}, "
+                    "-1, -1)")  # fmt: skip
         raise ValueError(f"landmarks_px must be (B, K, 2) with B = {B} (one set per frame), got {got}{hint}")
     if tuple(landmarks_px.shape[1:]) != (K, 2):
         # ((B, 2, K): x and y rows, as some detectors give them)
@@ -1076,10 +1094,14 @@ def check_initialise_inputs(
                 if tuple(landmarks_px.shape[1:]) == (K, 3) else "")  # fmt: skip
         if K == 68 and landmarks_px.shape[1] in MEDIAPIPE_MESH_POINT_COUNTS:  # (CANDIDE-3's, the iBUG points)
             hint = f" ({MEDIAPIPE_MESH_HINT})"  # (MediaPipe's (B, 478, 2 or 3) points were told the shape alone)
+        other = other_landmark_set_hint(landmarks_px.shape[1], "landmarks_px[:, :68, :2]") if K == 68 else None
+        if other is not None:  # (WFLW's (B, 98, 2), OpenPose's (B, 70, 3): told the shape alone)
+            hint = f" ({other})"
         raise ValueError(f"landmarks_px must be (B, {K}, 2), the model's {K} landmarks (NaN rows for missing ones), "
                          f"got {tuple(landmarks_px.shape)}{hint}")  # fmt: skip
     if weights is not None and not isinstance(weights, Tensor):
-        raise TypeError(f"weights must be a ({B}, {K}) tensor or None, got {type(weights).__name__}")
+        raise TypeError(f"weights must be a ({B}, {K}) tensor or None, got {type(weights).__name__}"
+                        f"{_weights_type_hint(weights, B, K)}")  # fmt: skip
     if weights is not None and tuple(weights.shape) != (B, K):
         raise ValueError(f"weights must be ({B}, {K}), got {tuple(weights.shape)}"
                          f"{_weights_shape_hint(tuple(weights.shape), B, K)}")  # fmt: skip
@@ -1148,7 +1170,8 @@ def pyramid_for_faces(
     if landmarks_px.dim() != 3 or landmarks_px.shape[-1] != 2:
         raise ValueError(f"landmarks_px must be (B, K, 2), got {tuple(landmarks_px.shape)}")
     if weights is not None and not isinstance(weights, Tensor):
-        raise TypeError(f"weights must be a (B, K) tensor or None, got {type(weights).__name__}")
+        raise TypeError(f"weights must be a (B, K) tensor or None, got {type(weights).__name__}"
+                        f"{_weights_type_hint(weights, *landmarks_px.shape[:2])}")  # fmt: skip
     if weights is not None and tuple(weights.shape) != tuple(landmarks_px.shape[:2]):
         raise ValueError(f"weights must be {tuple(landmarks_px.shape[:2])} (B, K), got {tuple(weights.shape)}")
     check_landmark_values(landmarks_px, weights)
