@@ -665,6 +665,10 @@ def test_results_become_the_csvs_rows_as_the_docs_say(clip):
         result_rows(results, [0, 1], 25.0)
     with pytest.raises(ValueError, match=r"^frame_indices must give one frame index per stream \(2\), got 1$"):
         result_rows(r, [1], 25.0)
+    for frame in (1.5, -1, float("nan")):  # (written as the row's frame and time without a word)
+        with pytest.raises(ValueError, match=r"^frame_indices must be whole frame numbers >= 0, got "):
+            result_rows(r, [0, frame], 25.0)
+    assert result_rows(r, np.array([2.0, 3.0]), 25.0)[:, 0].tolist() == [2, 3]  # (whole floats, as the job's)
     for fps in (0.0, float("inf"), float("nan")):  # (inf passed "> 0": every timestamp 0)
         with pytest.raises(ValueError, match=r"^fps must be a finite number > 0 \(frames per second\), got"):
             result_rows(r, [0, 1], fps)

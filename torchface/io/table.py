@@ -54,7 +54,7 @@ import re
 from collections.abc import Sequence
 from pathlib import Path
 from types import TracebackType
-from typing import TextIO
+from typing import TYPE_CHECKING, TextIO
 
 import numpy as np
 import torch
@@ -64,6 +64,9 @@ from torchface._names import name_tuple
 from torchface.geometry._checks import check_number
 from torchface.geometry.so3 import matrix_to_euler
 from torchface.io.errors import InputError, OutputError
+
+if TYPE_CHECKING:  # (torchface.tracker imports torchface.io: the name only, for the annotation)
+    from torchface.tracker.step import TrackResult
 
 __all__ = [
     "POSE_COLUMNS",
@@ -179,13 +182,17 @@ def pose_values(R: Tensor, t: Tensor) -> np.ndarray:
     return torch.cat([t, openface_euler(R), matrix_to_euler(R), R.reshape(-1, 9)], dim=1).numpy()
 
 
-def result_rows(result, frame_indices: Tensor | np.ndarray | Sequence[int], fps: float) -> np.ndarray:
+def result_rows(result: TrackResult, frame_indices: Tensor | np.ndarray | Sequence[int], fps: float) -> np.ndarray:
     """``(B, C)`` float64 rows (columns of :func:`track_columns`) for one step's ``TrackResult``.
 
     Args:
         result: a :class:`~torchface.tracker.TrackResult` with batch B.
-        frame_indices: ``(B,)`` frame index of each row (a tensor, array or list: ``[t] * B``).
+        frame_indices: ``(B,)`` frame index of each row, whole numbers >= 0 (a tensor, array or list: ``[t] * B``).
         fps: frames per second (``timestamp = frame / fps``; the job writes the frame's time from its reader).
+
+    Raises:
+        TypeError: ``result`` is not one step's result, or ``fps`` not a number.
+        ValueError: not one frame index per stream, an index that is not a whole number >= 0, or ``fps`` <= 0.
     """
     if not isinstance(getattr(result, "rotation", None), Tensor):  # (a list of results: an AttributeError)
         raise TypeError(f"result must be one step's TrackResult, got {type(result).__name__} (rows of several: "
@@ -196,6 +203,9 @@ def result_rows(result, frame_indices: Tensor | np.ndarray | Sequence[int], fps:
     B = R.shape[0]
     if frames.shape[0] != B:  # (torch.cat's "Sizes of tensors must match")
         raise ValueError(f"frame_indices must give one frame index per stream ({B}), got {frames.shape[0]}")
+    bad = ~(torch.isfinite(frames) & (frames >= 0) & (frames == frames.round()))
+    if bool(bad.any()):  # (1.5, -1 or NaN was written as the row's frame and its time without a word)
+        raise ValueError(f"frame_indices must be whole frame numbers >= 0, got {float(frames[bad][0]):g}")
 
     def col(x: Tensor) -> Tensor:
         return x.detach().to("cpu", torch.float64).reshape(B, -1)
