@@ -86,6 +86,15 @@ def test_landmarks_in_normalised_coordinates_are_told_how_to_make_pixels(clip):
     assert bool((partly_out[:, 0] < 0).any())
     with pytest.raises(ValueError, match=r"^landmarks_px lie within \[-0.5, 1.5\]"):
         FaceTracker(CFG).initialise(frames[:1], partly_out[None])
+    # Centred coordinates, in [-1, 1], are told their own recipe too (the [0, 1] one alone put them at negative
+    # pixels), and the pixels made so start the stream.
+    centred = normalised(lm) * 2 - 1
+    with pytest.raises(ValueError, match=r"if they are centred, in \[-1, 1\] \(some are below 0\): \(landmarks \+ 1\) "
+                                         r"\* torch.tensor\(\[80, 60\]\)"):  # fmt: skip
+        FaceTracker(CFG).initialise(frames[:1], centred[None])
+    assert int(FaceTracker(CFG).initialise(frames[:1], ((centred + 1) * torch.tensor([80, 60]))[None]).status) == 0
+    with pytest.raises(ValueError, match=r"for these 160x120 frames \(a fit to them failed"):  # (all >= 0: not said)
+        FaceTracker(CFG).initialise(frames[:1], normalised(lm)[None])
     half = torch.cat([normalised(lm[:40]), lm[40:]])
     weights = torch.cat([torch.ones(40), torch.zeros(28)])[None]
     with pytest.raises(ValueError, match=r"^landmarks_px lie within \[-0.5, 1.5\]"):

@@ -593,10 +593,17 @@ def check_pixel_landmarks(
     normalised, in_pixels = _normalised_and_pixels(landmarks_px, width, height, weights)
     low, high = NORMALISED_LANDMARK_RANGE
     if bool(normalised.any()) and not bool(in_pixels.any()):
+        lm = landmarks_px.detach()[normalised]
+        # (centred coordinates, in [-1, 1] as some toolkits give them, were told the [0, 1] recipe alone, which put
+        # their points at negative pixels)
+        centred = bool((lm[torch.isfinite(lm)] < 0).any())
         raise ValueError(
             f"{name} lie within [{low}, {high}] x [{low}, {high}]: normalised coordinates (x / W, y / H, as MediaPipe "
             f"gives them)? The tracker takes pixels, centres at integers: landmarks * torch.tensor([{width}.0, {height}.0]) "
-            f"for these {width}x{height} frames (a fit to them failed: they span about a pixel at most)"
+            f"for these {width}x{height} frames"
+            + (f"; if they are centred, in [-1, 1] (some are below 0): (landmarks + 1) * torch.tensor([{width / 2:g}, "
+               f"{height / 2:g}])" if centred else "")
+            + " (a fit to them failed: they span about a pixel at most)"
         )
 
 
