@@ -172,6 +172,10 @@ def test_convert_must_be_a_bool(tmp_path):
     with pytest.raises(InputError, match="grayscale"):
         open_frames(tmp_path, convert=np.bool_(False))  # type: ignore[arg-type]
     assert open_frames(tmp_path, convert=True).info.conversion == "uint8 gray -> RGB"
+    gray = np.full((40, 56), 100, dtype=np.uint8)  # frame_to_tensor's own convert alike (it converted on "no")
+    with pytest.raises(TypeError, match=r"^convert must be a bool, got str 'no'$"):
+        frame_to_tensor(gray, bgr=True, where="x", convert="no")  # type: ignore[arg-type]
+    assert frame_to_tensor(gray, bgr=True, where="x", convert=True)[0].shape == (3, 40, 56)
 
 
 def test_gray_frame_mid_folder_is_rejected(tmp_path):

@@ -259,6 +259,7 @@ def frame_to_tensor(array: np.ndarray, bgr: bool, where: str, convert: bool = Fa
         >>> frame_to_tensor(np.zeros((40, 50, 3), np.uint8), bgr=True, where="x")[0].shape
         torch.Size([3, 40, 50])
     """
+    convert = check_bool(convert, "convert")  # (as open_frames': convert="no" converted)
     array = _layout(array, where)
     if array.dtype not in (np.uint8, np.uint16, np.float16, np.float32, np.float64):  # (float16: a half .npy clip)
         hint = ""
