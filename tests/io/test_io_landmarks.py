@@ -148,7 +148,7 @@ def test_bad_landmarks(tmp_path, edit, message):
     assert "\n" not in str(info.value)
 
 
-def test_check_landmarks_min_inside_lets_a_detectors_points_cross_the_edge():
+def test_check_landmarks_min_inside_lets_a_detectors_points_cross_the_edge(tmp_path):
     """A detector's landmarks (``min_inside=0.5``) may lie partly outside the frame (a chin at the edge); a file's
     (the default) may not, and more than half outside is refused either way."""
     points = _points()
@@ -156,6 +156,13 @@ def test_check_landmarks_min_inside_lets_a_detectors_points_cross_the_edge():
     with pytest.raises(InputError, match="3 landmark.s. outside the 100x100 frame"):
         check_landmarks(points, 100, 100, "file")
     assert np.array_equal(check_landmarks(points, 100, 100, "detector", min_inside=0.5), points)
+    # A file's point a pixel out of the frame (which initialise takes) is told how to leave it out, in the file's way.
+    np.savetxt(tmp_path / "lm.csv", points, delimiter=",")
+    with pytest.raises(InputError, match=r"pixel centres at integers\); a point the frame does not show is given as "
+                                         r"missing \(.*nan.*\)$"):  # fmt: skip
+        read_landmarks(tmp_path / "lm.csv", 100, 100)
+    with pytest.raises(InputError, match=r"integers\)$"):  # (all must be given: no way out to tell)
+        check_landmarks(points, 100, 100, "file", missing=False)
     with pytest.raises(InputError, match="68 landmark.s. outside"):
         check_landmarks(points + 500.0, 100, 100, "detector", min_inside=0.5)
 
@@ -517,7 +524,8 @@ def test_too_few_points_given_are_refused_naming_the_file_and_the_count(tmp_path
                     (-0.5000000000001, "-0.5000000000001")):  # fmt: skip
         outside[5] = [x, 50.0]
         np.save(tmp_path / "edge.npy", outside)
-        span = r"\(the frame spans x -0\.5 to 99\.5, y -0\.5 to 99\.5: pixel centres at integers\)$"
+        span = (r"\(the frame spans x -0\.5 to 99\.5, y -0\.5 to 99\.5: pixel centres at integers\); a point the "
+                r"frame does not show is given as missing, a NaN row$")  # (an array's way)
         with pytest.raises(InputError, match=rf"e\.g\. point 5 at \({re.escape(said)}, 50\.0\) " + span):
             read_landmarks(tmp_path / "edge.npy", 100, 100)
         outside[5] = [round(x + 0.01) - 0.5 if x > 0 else -0.5, 50.0]

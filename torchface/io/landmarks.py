@@ -836,6 +836,9 @@ def check_landmarks(
             f"{where}: {int(outside.sum())} landmark(s) outside the {width}x{height} frame, e.g. point {k} at "
             f"({_coordinate(points[k, 0], width)}, {_coordinate(points[k, 1], height)}) (the frame spans x -0.5 to "
             f"{width - 0.5}, y -0.5 to {height - 0.5}: pixel centres at integers)"
+            # (a point a pixel out of the frame, which initialise takes, was refused without a word of the way out)
+            + (f"; a point the frame does not show is given as missing"
+               f"{' (' + missing_as + ')' if missing_as else ', a NaN row'}" if missing else "")
         )  # (the point was written to 0.1: one 0.01 px outside read "at (-0.5, ...)", the frame's very edge)
     kept = points[given]
     low, high = NORMALISED_LANDMARK_RANGE
