@@ -1111,10 +1111,19 @@ def main(argv: list[str] | None = None) -> int:
     cache = None if args.cache.lower() == "none" else Path(args.cache)
 
     earlier: list[FrameSeries] = []
+    added: list[Path] = []
     for item in (x.strip() for x in args.add_series.split(",")):
         if item:
             if not Path(item).is_file():
                 parser.error(f"--add-series: no file {item}")
+            # (one file twice was pooled twice: every frame of its runs counted double in section (b); the
+            # --save-series file replaced at the end by this run's series alone lost the runs it held)
+            if any(Path(item).samefile(p) for p in added):
+                parser.error(f"--add-series: {item} is given twice (its runs would be pooled twice)")
+            if args.save_series is not None and args.save_series.is_file() and Path(item).samefile(args.save_series):
+                parser.error(f"--save-series {args.save_series} is also an --add-series file: this run's series "
+                             "alone would replace the runs it holds; save them under another name")  # fmt: skip
+            added.append(Path(item))
             try:
                 earlier += load_series(Path(item))
             except ValueError as exc:

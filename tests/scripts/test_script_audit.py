@@ -712,3 +712,23 @@ def test_fit_mediapipe_table_refuses_bad_arguments_before_any_work(tmp_path, cap
     (tmp_path / "photos" / "astronaut.png").write_bytes(b"")
     argv = ["--assets", str(tmp_path), "--threshold", "1.5"]
     assert "--threshold must be in [0, 1), got 1.5" in _usage_error(script.main, argv, capsys)
+
+
+def test_evaluate_refuses_one_series_file_pooled_twice_or_replaced(tmp_path, capsys):
+    """``--add-series a.npz,a.npz`` pooled the file's runs twice (every frame counted double in section (b), the
+    pools' sizes doubled, with no word), and ``--save-series`` naming an ``--add-series`` file replaced it at the end
+    with this run's series alone (the runs it held lost); each is now a one-line error before any work."""
+    import torch
+
+    evaluate = _load("evaluate")
+    t = torch.arange(4, dtype=torch.float64)
+    path = tmp_path / "a.npz"
+    evaluate.save_series(path, [evaluate.FrameSeries("pose_sweep", "full", True, t, t / 4, t > 0, t >= 0, 1.0, 64, 48)])
+    twice = f"{path},{tmp_path / '.' / 'a.npz'}"  # (the same file under another spelling)
+    err = _usage_error(evaluate.main, ["--scenarios", "none", "--add-series", twice], capsys)
+    assert f"--add-series: {tmp_path / '.' / 'a.npz'} is given twice" in err, err
+    argv = ["--scenarios", "none", "--add-series", str(path), "--save-series", str(path)]
+    assert f"--save-series {path} is also an --add-series file" in _usage_error(evaluate.main, argv, capsys)
+    argv = ["--scenarios", "none", "--add-series", str(path), "--save-series", str(tmp_path / "b.npz")]
+    assert evaluate.main(argv) == 0  # (a series of its own: allowed)
+    assert "POOLED default configuration                      3" in capsys.readouterr().out
