@@ -732,3 +732,21 @@ def test_evaluate_refuses_one_series_file_pooled_twice_or_replaced(tmp_path, cap
     argv = ["--scenarios", "none", "--add-series", str(path), "--save-series", str(tmp_path / "b.npz")]
     assert evaluate.main(argv) == 0  # (a series of its own: allowed)
     assert "POOLED default configuration                      3" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--frames", "8", "--batches", "1", "--malloc-batches", ""],
+     "--frames 8 is too few for the template-management rows' B = 32: stream b starts at frame b and tracks at least "
+     "4 frames, so --frames must be >= 36"),
+    (["--frames", "8", "--management-only"], "the template-management rows' B = 32"),
+    (["--frames", "100", "--batches", "1,8"], "--frames 100 is too few for B = 128"),  # (--malloc-batches' default)
+    (["--batches", "1,0"], "every batch must be >= 1, got --batches '1,0'"),
+])  # fmt: skip
+def test_benchmark_names_the_batch_that_needs_more_frames(argv, message, capsys, monkeypatch):
+    """``--frames 8 --batches 1`` was refused with "every batch must be >= 1 and leave 4 frames of the 8": the batch
+    at fault was the template-management rows' B = 32, which no option shows; the message names it and the least
+    --frames."""
+    bench = _load("benchmark")
+    monkeypatch.setattr(bench, "pose_sweep_frames", None)  # any rendering would fail the test: none may start
+    monkeypatch.setattr(sys, "argv", ["benchmark.py", *argv])
+    assert message in _usage_error(lambda _: bench.main(), None, capsys)
