@@ -420,7 +420,7 @@ def _online_refine_row(args: argparse.Namespace, figures: dict[str, dict[str, fl
     at = runs[0]["reanchor_frame"]
     where = f"at frame {at}" if at >= 0 else "not reached"
     print(f"\nonline look-ahead start (FaceTracker default; not in the rows above), B=1, 1 thread, {frames} frames: "
-          f"+{extra:.0f} ms in all ({100.0 * extra / off:+.1f}% of the managed run's {off:.0f} ms), of which the "
+          f"{extra:+.0f} ms in all ({100.0 * extra / off:+.1f}% of the managed run's {off:.0f} ms), of which the "
           f"one-off re-anchoring {where}: {reanchor:.0f} ms")  # fmt: skip
 
 

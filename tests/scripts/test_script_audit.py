@@ -750,3 +750,21 @@ def test_benchmark_names_the_batch_that_needs_more_frames(argv, message, capsys,
     monkeypatch.setattr(bench, "pose_sweep_frames", None)  # any rendering would fail the test: none may start
     monkeypatch.setattr(sys, "argv", ["benchmark.py", *argv])
     assert message in _usage_error(lambda _: bench.main(), None, capsys)
+
+
+def test_benchmark_online_start_row_signs_a_negative_cost_once(capsys, monkeypatch):
+    """The online start's row printed its extra time as ``+{extra}``: a run where it came out negative (noise on a
+    shared machine, a start that never re-anchored) read "+-18 ms in all"."""
+    import argparse
+
+    bench = _load("benchmark")
+    run = {"ms_total_on": 470.0, "ms_total_off": 488.0, "reanchor_ms": 0.0, "reanchor_frame": -1, "frames": 35}
+    monkeypatch.setattr(bench, "_run_child", lambda *a, **k: run)
+    figures: dict = {}
+    bench._online_refine_row(argparse.Namespace(repeats=1), figures)
+    out = capsys.readouterr().out
+    assert "-18 ms in all (-3.7% of the managed run's 488 ms)" in out and "+-" not in out, out
+    assert figures["online_refine_b1_1_thread"]["extra_ms_total"] == -18.0
+    run.update(ms_total_on=500.0)
+    bench._online_refine_row(argparse.Namespace(repeats=1), figures)
+    assert "+12 ms in all (+2.5% of" in capsys.readouterr().out
