@@ -768,3 +768,24 @@ def test_benchmark_online_start_row_signs_a_negative_cost_once(capsys, monkeypat
     run.update(ms_total_on=500.0)
     bench._online_refine_row(argparse.Namespace(repeats=1), figures)
     assert "+12 ms in all (+2.5% of" in capsys.readouterr().out
+
+
+def test_benchmark_track_refuses_no_sizes_and_runs_a_size_once(tmp_path, capsys, monkeypatch):
+    """``--sizes ''`` (or ``,``) rendered the clips, then ran nothing: a header without rows and exit status 0, as a
+    whole run's; ``--sizes 640x480,640x480`` ran and printed the size twice. Now the first is a one-line error before
+    any work, and a size given twice runs once."""
+    track = _load("benchmark_track")
+    monkeypatch.setattr(track, "_clips", None)  # any rendering would fail the test: none may start
+    for sizes in ("", ",", " , "):
+        monkeypatch.setattr(sys, "argv", ["benchmark_track.py", "--sizes", sizes, "--cache", str(tmp_path)])
+        assert "--sizes: none given; choose from 640x480, 1920x1080" in _usage_error(lambda _: track.main(), None,
+                                                                                   capsys)  # fmt: skip
+    runs = []
+    monkeypatch.setattr(track, "_clips", lambda cache, count: {s: (tmp_path / f"{s}.mp4", tmp_path / "lm.csv")
+                                                                for s in track.SIZES})  # fmt: skip
+    monkeypatch.setattr(track, "_run", lambda checkout, video, lm, out: runs.append(video) or (2.0, 1.5, 80.0))
+    monkeypatch.setattr(sys, "argv", ["benchmark_track.py", "--sizes", "640x480, 640x480", "--repeats", "1",
+                                      "--frames", "4", "--cache", str(tmp_path)])  # fmt: skip
+    track.main()
+    assert runs == [tmp_path / "640x480.mp4"]
+    assert sum(line.strip().startswith("640x480") for line in capsys.readouterr().out.splitlines()) == 1
