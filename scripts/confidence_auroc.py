@@ -169,8 +169,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--progress-every", type=integer(0), default=20,
                         help="a progress line on stderr every N frames of a scenario's run (0: none; default 20)")
     args = parser.parse_args(argv)
-    names = list(SCENARIOS) if args.scenarios == "all" else [s.strip() for s in args.scenarios.split(",")]
-    variants = [v.strip() for v in args.variants.split(",") if v.strip()]
+    # (each once, empty items skipped, as evaluate.py reads its lists: a scenario given twice was tracked twice, a
+    # variant given twice had its tables printed twice, and a trailing comma was an "unknown scenario ''")
+    names = list(SCENARIOS) if args.scenarios == "all" else [s.strip() for s in args.scenarios.split(",") if s.strip()]
+    names = list(dict.fromkeys(names))
+    variants = list(dict.fromkeys(v.strip() for v in args.variants.split(",") if v.strip()))
     for v in variants:
         if v not in VARIANTS:
             parser.error(f"unknown variant {v!r}; choose from {', '.join(VARIANTS)}")
@@ -179,6 +182,8 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(f"unknown scenario {name!r}; choose from {', '.join(SCENARIOS)} or all")
     if not variants:
         parser.error(f"--variants: none given; choose from {', '.join(VARIANTS)}")
+    if not names:
+        parser.error(f"--scenarios: none given; choose from {', '.join(SCENARIOS)} or all")
     if variants == ["no_illum"] and "light_switch" not in names:  # (rendered, then nothing run nor printed: exit 0)
         parser.error("--variants no_illum runs on light_switch only, which --scenarios leaves out")
     if args.frames is not None and args.frames < 2:

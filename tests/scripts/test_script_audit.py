@@ -789,3 +789,19 @@ def test_benchmark_track_refuses_no_sizes_and_runs_a_size_once(tmp_path, capsys,
     track.main()
     assert runs == [tmp_path / "640x480.mp4"]
     assert sum(line.strip().startswith("640x480") for line in capsys.readouterr().out.splitlines()) == 1
+
+
+def test_confidence_auroc_reads_each_scenario_and_variant_once(capsys, monkeypatch):
+    """``--scenarios pose_sweep,pose_sweep`` tracked the scenario twice, ``--variants standard,standard`` printed the
+    summary's tables twice, and a trailing comma (``pose_sweep,``) was "unknown scenario ''"; now each is read once
+    and empty items are skipped, as evaluate.py reads its lists (none at all: a one-line error)."""
+    auroc = _load("confidence_auroc")
+    tracked = []
+    run = auroc.run
+    monkeypatch.setattr(auroc, "run", lambda name, *a, **k: tracked.append(name) or run(name, *a, **k))
+    argv = ["--scenarios", "pose_sweep,pose_sweep,", "--variants", "standard,standard", "--frames", "3", "--size",
+            "64x48", "--cache", "none", "--progress-every", "0"]  # fmt: skip
+    assert auroc.main(argv) == 0
+    out = capsys.readouterr().out
+    assert tracked == ["pose_sweep"] and out.count("standard/POOLED") == 1, (tracked, out)
+    assert "--scenarios: none given" in _usage_error(auroc.main, ["--scenarios", ","], capsys)
