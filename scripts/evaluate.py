@@ -900,7 +900,7 @@ def _names(text: str, parser: argparse.ArgumentParser) -> list[str]:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=(__doc__ or "").partition("\n")[0])
     parser.add_argument(
-        "--scenarios", "--only", default="all",
+        "--scenarios", "--only", default=None,
         help=f"comma list from {', '.join(ALL_SCENARIOS)}, or all (default), standard, long; none (with --add-series)",
     )
     parser.add_argument("--long", action="store_true", help="the long scenarios only (same as --scenarios long)")
@@ -1022,7 +1022,11 @@ def main(argv: list[str] | None = None) -> int:
     )
     args = parser.parse_args(argv)
 
-    names = list(LONG_SCENARIOS) if args.long else _names(args.scenarios, parser)
+    names = _names("all" if args.scenarios is None else args.scenarios, parser)
+    if args.long:  # (with --scenarios too, --long won silently: --long --only pose_sweep tracked the long runs alone)
+        if args.scenarios is not None and set(names) != set(LONG_SCENARIOS):
+            parser.error(f"--long is --scenarios long; not with --scenarios {args.scenarios}: give one")
+        names = list(LONG_SCENARIOS)
     if not names and not args.add_series:
         parser.error("no scenario selected (--scenarios none only with --add-series)")
     if args.ablations == "all":

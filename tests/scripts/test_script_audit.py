@@ -805,3 +805,28 @@ def test_confidence_auroc_reads_each_scenario_and_variant_once(capsys, monkeypat
     out = capsys.readouterr().out
     assert tracked == ["pose_sweep"] and out.count("standard/POOLED") == 1, (tracked, out)
     assert "--scenarios: none given" in _usage_error(auroc.main, ["--scenarios", ","], capsys)
+
+
+def test_evaluate_refuses_long_with_other_scenarios(capsys, monkeypatch):
+    """``--long`` (the long scenarios only) took the place of ``--scenarios`` without a word: ``--long --only
+    pose_sweep`` tracked the two 3000-frame long runs and no pose_sweep. Now that pair is a one-line error; ``--long``
+    alone, or with ``--scenarios long``, runs the long scenarios."""
+    evaluate = _load("evaluate")
+    started = []
+
+    class Started(Exception):
+        """The argument checks passed: the run stops here, before any work."""
+
+    def load(*a, **k):
+        started.append(True)
+        raise Started
+
+    monkeypatch.setattr(evaluate, "load_candide3", load)
+    with pytest.raises(SystemExit) as info:
+        evaluate.main(["--long", "--only", "pose_sweep", "--cache", "none"])
+    err = capsys.readouterr().err
+    assert info.value.code == 2 and "--long is --scenarios long; not with --scenarios pose_sweep: give one" in err
+    for argv in (["--long"], ["--long", "--scenarios", "long"], ["--long", "--scenarios", "long_run_scan,long_run"]):
+        with pytest.raises(Started):
+            evaluate.main([*argv, "--cache", "none"])
+    assert len(started) == 3
