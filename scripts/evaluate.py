@@ -1041,10 +1041,12 @@ def main(argv: list[str] | None = None) -> int:
     if args.long_configs == "all":
         long_configs = list(LONG_CONFIGS)
     else:
-        long_configs = [c.strip() for c in args.long_configs.split(",") if c.strip()]
+        long_configs = list(dict.fromkeys(c.strip() for c in args.long_configs.split(",") if c.strip()))
         for c in long_configs:
             if c not in LONG_CONFIGS:
                 parser.error(f"unknown long configuration {c!r}; choose from {', '.join(LONG_CONFIGS)} or all")
+        if not long_configs:  # (a long run was rendered, then long_table's TypeError of no configurations)
+            parser.error(f"--long-configs: none given; choose from {', '.join(LONG_CONFIGS)} or all")
     if args.frames is not None and args.frames < 2:
         parser.error(f"--frames must be >= 2, got {args.frames}")
     if args.hold < 1:

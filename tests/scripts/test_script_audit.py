@@ -830,3 +830,33 @@ def test_evaluate_refuses_long_with_other_scenarios(capsys, monkeypatch):
         with pytest.raises(Started):
             evaluate.main([*argv, "--cache", "none"])
     assert len(started) == 3
+
+
+def test_evaluate_refuses_no_long_configuration_and_runs_one_given_twice_once(capsys, monkeypatch):
+    """``--long-configs ''`` (or ``,``) rendered the long run, then failed with a TypeError's traceback in its table
+    (no configuration to print); now a one-line error before any work. ``--long-configs mosaic,mosaic`` tracked the
+    long run twice and pooled both runs in section (b), every frame counted double; now once."""
+    import torch
+
+    evaluate = _load("evaluate")
+    load = evaluate.load_candide3
+    monkeypatch.setattr(evaluate, "load_candide3", None)  # any run would fail the test: none may start
+    for configs in ("", ","):
+        argv = ["--only", "long_run", "--long-configs", configs, "--long-frames", "100", "--cache", "none"]
+        assert "--long-configs: none given; choose from mosaic" in _usage_error(evaluate.main, argv, capsys)
+    monkeypatch.setattr(evaluate, "load_candide3", load)
+    tracked = []
+
+    def track(model, config, frames, gt, landmarks, label, every):  # the truth itself, without tracking
+        tracked.append(label)
+        T = gt.num_frames
+        return evaluate.RunOutput(gt.rotation, gt.translation, gt.au, torch.zeros(T, dtype=torch.int64), 1.0, 1.0,
+                                  torch.ones(T, dtype=torch.bool), torch.ones(T, dtype=torch.float64),
+                                  torch.zeros(T, dtype=torch.bool))  # fmt: skip
+
+    monkeypatch.setattr(evaluate, "track_frames", track)
+    argv = ["--only", "long_run", "--long-configs", "mosaic,mosaic", "--long-frames", "100", "--size", "64x48",
+            "--cache", "none", "--threads", "1"]  # fmt: skip
+    assert evaluate.main(argv) == 0
+    assert tracked == ["long_run/mosaic"], tracked
+    capsys.readouterr()
