@@ -1034,7 +1034,8 @@ def main(argv: list[str] | None = None) -> int:
     elif args.ablations == "none":
         ablations = ["full"]
     else:
-        ablations = ["full"] + [a.strip() for a in args.ablations.split(",") if a.strip() and a.strip() != "full"]
+        # (each once: one given twice was tracked twice and both runs pooled in section (b)'s all-configurations rows)
+        ablations = list(dict.fromkeys(["full"] + [a.strip() for a in args.ablations.split(",") if a.strip()]))
         for a in ablations:
             if a not in ABLATIONS:
                 parser.error(f"unknown ablation {a!r}; choose from {', '.join(ABLATIONS)}, all or none")
@@ -1070,11 +1071,11 @@ def main(argv: list[str] | None = None) -> int:
         if not (math.isfinite(sparsity) and sparsity > 0.0):
             parser.error(f"--expression-sparsity must be a number > 0 or 'none', got {args.expression_sparsity!r}")
     try:
-        noise_seeds = [int(x) for x in args.noise_seeds.split(",") if x.strip()]
+        noise_seeds = list(dict.fromkeys(int(x) for x in args.noise_seeds.split(",") if x.strip()))  # (each once)
     except ValueError:
         parser.error(f"--noise-seeds must be a comma list of integers, got {args.noise_seeds!r}")
     try:
-        selection_seeds = [int(x) for x in args.selection_seeds.split(",") if x.strip()]
+        selection_seeds = list(dict.fromkeys(int(x) for x in args.selection_seeds.split(",") if x.strip()))
     except ValueError:
         parser.error(f"--selection-seeds must be a comma list of integers, got {args.selection_seeds!r}")
     if any(x < 0 for x in selection_seeds):

@@ -860,3 +860,28 @@ def test_evaluate_refuses_no_long_configuration_and_runs_one_given_twice_once(ca
     assert evaluate.main(argv) == 0
     assert tracked == ["long_run/mosaic"], tracked
     capsys.readouterr()
+
+
+def test_evaluate_tracks_an_ablation_or_seed_given_twice_once(capsys, monkeypatch):
+    """``--ablations no_robust,no_robust`` tracked the ablation twice and pooled both runs in section (b) (its
+    all-configurations rows counted each frame double); ``--noise-seeds 1,1`` and ``--selection-seeds 2,2`` tracked
+    their seed twice for one table row. Now each is tracked once."""
+    import torch
+
+    evaluate = _load("evaluate")
+    tracked = []
+
+    def track(model, config, seq, landmarks, label, every):  # the truth itself, without tracking
+        tracked.append(label)
+        T = seq.gt.num_frames
+        return evaluate.RunOutput(seq.gt.rotation, seq.gt.translation, torch.zeros(T, model.num_animation),
+                                  torch.zeros(T, dtype=torch.int64), 1.0, 1.0, torch.ones(T, dtype=torch.bool),
+                                  torch.ones(T, dtype=torch.float64), torch.zeros(T, dtype=torch.bool))  # fmt: skip
+
+    monkeypatch.setattr(evaluate, "track_sequence", track)
+    argv = ["--scenarios", "pose_sweep", "--frames", "3", "--size", "64x48", "--cache", "none", "--threads", "1",
+            "--ablations", "no_robust,full,no_robust", "--noise-seeds", "1,1", "--selection-seeds", "2,2"]  # fmt: skip
+    assert evaluate.main(argv) == 0
+    assert tracked == ["pose_sweep/full", "pose_sweep/no_robust", "pose_sweep/seed1", "pose_sweep/draw2"], tracked
+    out = capsys.readouterr().out
+    assert "POOLED all configurations                         4" in out, out  # (2 runs x frames 1..2)
