@@ -885,3 +885,31 @@ def test_evaluate_tracks_an_ablation_or_seed_given_twice_once(capsys, monkeypatc
     assert tracked == ["pose_sweep/full", "pose_sweep/no_robust", "pose_sweep/seed1", "pose_sweep/draw2"], tracked
     out = capsys.readouterr().out
     assert "POOLED all configurations                         4" in out, out  # (2 runs x frames 1..2)
+
+
+def test_a_script_whose_stdout_reader_has_gone_stops_without_a_traceback(tmp_path):
+    """``scripts/make_sequence.py ... | head -1`` (or evaluate.py's tables into ``head``) ended with a BrokenPipeError's
+    traceback and status 1 at the first line after the reader had gone; now silently with status 141, as ``cat``
+    and ``torchface`` do, its temporary files removed as on an interrupt."""
+    import subprocess
+
+    script = tmp_path / "chatty.py"
+    script.write_text(
+        "import sys\n"
+        f"sys.path.insert(0, {str(SCRIPTS)!r})\n"
+        "from _argtypes import run_command\n"
+        "from pathlib import Path\n"
+        "from _argtypes import written_whole\n"
+        "def main():\n"
+        f"    with written_whole(Path({str(tmp_path / 'out.txt')!r})) as tmp:\n"
+        "        tmp.write_text('half')\n"
+        "        while True:\n"
+        "            print('a line of the table', flush=True)\n"
+        "run_command(main)\n"
+    )
+    run = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    run.stdout.readline()
+    run.stdout.close()  # (the reader goes, as head -1 does)
+    err = run.stderr.read().decode()
+    assert run.wait(timeout=60) == 141 and err == "", err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["chatty.py"]  # (no temporary file left)
