@@ -127,6 +127,8 @@ def main(argv: list[str] | None = None) -> int:
                  f"{args.cpu_batches!r}")  # fmt: skip
     if any(b < 1 for b in batches + cpu_batches):
         ap.error("every batch must be >= 1")
+    if not batches + cpu_batches:  # (the frames were rendered, then no row run: a bare header, exit status 0)
+        ap.error("--batches and --cpu-batches are both empty: no row to run")
     if args.frames > 150:
         ap.error(f"--frames must be in 4..150 (the sweep's slow first half), got {args.frames}")
     if (problem := device_problem(args.device)) is not None:

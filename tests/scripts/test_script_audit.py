@@ -913,3 +913,12 @@ def test_a_script_whose_stdout_reader_has_gone_stops_without_a_traceback(tmp_pat
     err = run.stderr.read().decode()
     assert run.wait(timeout=60) == 141 and err == "", err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["chatty.py"]  # (no temporary file left)
+
+
+def test_benchmark_device_refuses_to_run_no_row(tmp_path, capsys, monkeypatch):
+    """``--batches '' --cpu-batches ''`` rendered the frames, then ran no row: a table's header alone and exit status
+    0, as a whole run's; now a one-line error before any work."""
+    device = _load("benchmark_device")
+    monkeypatch.setattr(device, "pose_sweep_frames", None)  # any rendering would fail the test: none may start
+    argv = ["--device", "cpu", "--batches", "", "--cpu-batches", ",", "--cache", str(tmp_path / "c")]
+    assert "--batches and --cpu-batches are both empty: no row to run" in _usage_error(device.main, argv, capsys)
