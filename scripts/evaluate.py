@@ -1091,6 +1091,9 @@ def main(argv: list[str] | None = None) -> int:
     for option, path in (("--json", args.json), ("--save-series", args.save_series)):
         if path is not None and (problem := file_problem(path)) is not None:
             parser.error(f"{option} {path}: {problem}")
+    # (one file for both: the figures' JSON was renamed onto the series just written, which were lost)
+    if args.json is not None and args.save_series is not None and args.json.resolve() == args.save_series.resolve():
+        parser.error(f"--json and --save-series name one file, {args.json}: give each its own")
     check_python(parser, args.mediapipe_python)
     if (problem := device_problem(args.device)) is not None:  # (a traceback from load_candide3 before)
         parser.error(f"--device {args.device}: {problem}")
@@ -1127,9 +1130,11 @@ def main(argv: list[str] | None = None) -> int:
             # --save-series file replaced at the end by this run's series alone lost the runs it held)
             if any(Path(item).samefile(p) for p in added):
                 parser.error(f"--add-series: {item} is given twice (its runs would be pooled twice)")
-            if args.save_series is not None and args.save_series.is_file() and Path(item).samefile(args.save_series):
-                parser.error(f"--save-series {args.save_series} is also an --add-series file: this run's series "
-                             "alone would replace the runs it holds; save them under another name")  # fmt: skip
+            for option, path in (("--save-series", args.save_series), ("--json", args.json)):
+                if path is not None and path.is_file() and Path(item).samefile(path):
+                    what = "this run's series alone" if option == "--save-series" else "the figures' JSON"
+                    parser.error(f"{option} {path} is also an --add-series file: {what} would replace the runs it "
+                                 "holds; write it under another name")  # fmt: skip
             added.append(Path(item))
             try:
                 earlier += load_series(Path(item))

@@ -922,3 +922,24 @@ def test_benchmark_device_refuses_to_run_no_row(tmp_path, capsys, monkeypatch):
     monkeypatch.setattr(device, "pose_sweep_frames", None)  # any rendering would fail the test: none may start
     argv = ["--device", "cpu", "--batches", "", "--cpu-batches", ",", "--cache", str(tmp_path / "c")]
     assert "--batches and --cpu-batches are both empty: no row to run" in _usage_error(device.main, argv, capsys)
+
+
+def test_evaluate_refuses_one_file_for_json_and_series(tmp_path, capsys, monkeypatch):
+    """``--json X --save-series X`` wrote the series, then renamed the figures' JSON onto them (the series lost, with
+    no word); ``--json`` naming an ``--add-series`` file replaced the runs it held. Each is a one-line error before
+    any work."""
+    import torch
+
+    evaluate = _load("evaluate")
+    monkeypatch.setattr(evaluate, "load_candide3", None)  # any run would fail the test: none may start
+    same = tmp_path / "out.bin"
+    argv = ["--scenarios", "pose_sweep", "--cache", "none", "--json", str(same), "--save-series", str(tmp_path / "."
+                                                                                                     / "out.bin")]
+    assert f"--json and --save-series name one file, {same}" in _usage_error(evaluate.main, argv, capsys)
+    t = torch.arange(4, dtype=torch.float64)
+    series = tmp_path / "a.npz"
+    evaluate.save_series(series, [evaluate.FrameSeries("pose_sweep", "full", True, t, t / 4, t > 0, t >= 0, 1.0, 64,
+                                                       48)])  # fmt: skip
+    argv = ["--scenarios", "none", "--add-series", str(series), "--json", str(series)]
+    assert f"--json {series} is also an --add-series file: the figures' JSON" in _usage_error(evaluate.main, argv,
+                                                                                              capsys)  # fmt: skip
