@@ -1029,6 +1029,8 @@ def main(argv: list[str] | None = None) -> int:
         names = list(LONG_SCENARIOS)
     if not names and not args.add_series:
         parser.error("no scenario selected (--scenarios none only with --add-series)")
+    if not names and args.save_series is not None:  # (it wrote a file of no run, which --add-series pooled as nothing)
+        parser.error("--save-series writes this run's series, and --scenarios none tracks nothing: leave it out")
     if args.ablations == "all":
         ablations = list(ABLATIONS)
     elif args.ablations == "none":

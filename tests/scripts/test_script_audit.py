@@ -714,7 +714,7 @@ def test_fit_mediapipe_table_refuses_bad_arguments_before_any_work(tmp_path, cap
     assert "--threshold must be in [0, 1), got 1.5" in _usage_error(script.main, argv, capsys)
 
 
-def test_evaluate_refuses_one_series_file_pooled_twice_or_replaced(tmp_path, capsys):
+def test_evaluate_refuses_one_series_file_pooled_twice_or_replaced(tmp_path, capsys, monkeypatch):
     """``--add-series a.npz,a.npz`` pooled the file's runs twice (every frame counted double in section (b), the
     pools' sizes doubled, with no word), and ``--save-series`` naming an ``--add-series`` file replaced it at the end
     with this run's series alone (the runs it held lost); each is now a one-line error before any work."""
@@ -727,10 +727,12 @@ def test_evaluate_refuses_one_series_file_pooled_twice_or_replaced(tmp_path, cap
     twice = f"{path},{tmp_path / '.' / 'a.npz'}"  # (the same file under another spelling)
     err = _usage_error(evaluate.main, ["--scenarios", "none", "--add-series", twice], capsys)
     assert f"--add-series: {tmp_path / '.' / 'a.npz'} is given twice" in err, err
-    argv = ["--scenarios", "none", "--add-series", str(path), "--save-series", str(path)]
-    assert f"--save-series {path} is also an --add-series file" in _usage_error(evaluate.main, argv, capsys)
-    argv = ["--scenarios", "none", "--add-series", str(path), "--save-series", str(tmp_path / "b.npz")]
-    assert evaluate.main(argv) == 0  # (a series of its own: allowed)
+    argv = ["--scenarios", "pose_sweep", "--cache", "none", "--add-series", str(path), "--save-series", str(path)]
+    with monkeypatch.context() as patched:
+        patched.setattr(evaluate, "load_candide3", None)  # any run would fail the test: none may start
+        assert f"--save-series {path} is also an --add-series file" in _usage_error(evaluate.main, argv, capsys)
+    argv = ["--scenarios", "none", "--add-series", str(path), "--json", str(tmp_path / "b.json")]
+    assert evaluate.main(argv) == 0  # (the file once, an output of its own: allowed)
     assert "POOLED default configuration                      3" in capsys.readouterr().out
 
 
@@ -943,3 +945,19 @@ def test_evaluate_refuses_one_file_for_json_and_series(tmp_path, capsys, monkeyp
     argv = ["--scenarios", "none", "--add-series", str(series), "--json", str(series)]
     assert f"--json {series} is also an --add-series file: the figures' JSON" in _usage_error(evaluate.main, argv,
                                                                                               capsys)  # fmt: skip
+
+
+def test_evaluate_refuses_to_save_the_series_of_no_run(tmp_path, capsys):
+    """``--scenarios none --add-series a.npz --save-series b.npz`` wrote b.npz holding no run (--save-series keeps this
+    run's series, and it tracked none): a file that a later --add-series pooled as nothing, without a word. Now a
+    one-line error before any work."""
+    import torch
+
+    evaluate = _load("evaluate")
+    t = torch.arange(4, dtype=torch.float64)
+    series = tmp_path / "a.npz"
+    evaluate.save_series(series, [evaluate.FrameSeries("pose_sweep", "full", True, t, t / 4, t > 0, t >= 0, 1.0, 64,
+                                                       48)])  # fmt: skip
+    argv = ["--scenarios", "none", "--add-series", str(series), "--save-series", str(tmp_path / "b.npz")]
+    assert "--scenarios none tracks nothing" in _usage_error(evaluate.main, argv, capsys)
+    assert not (tmp_path / "b.npz").exists()
