@@ -129,8 +129,8 @@ def main(argv: list[str] | None = None) -> int:
             # (a smoke run of 12 faces read "NOT met (median 22)": the workers' start, in the wall time, is most of
             # so short an epoch)
             print(f"target >= 200 faces/s with 2 workers from the cache: not judged on {two['faces']:.0f} faces "
-                  f"(median {target:.0f}; the workers' start is most of so short an epoch: the target is for runs of at least "
-                  f"{TARGET_MIN_FACES} faces, the default 8 videos x 24 frames)")  # fmt: skip
+                  f"(median {target:.0f}; the workers' start is most of so short an epoch: the target is for runs of "
+                  f"at least {TARGET_MIN_FACES} faces, the default 8 videos x 24 frames)")  # fmt: skip
         else:
             print(f"target >= 200 faces/s with 2 workers from the cache: {'met' if target >= 200 else 'NOT met'} "
                   f"(median {target:.0f})")  # fmt: skip
