@@ -153,6 +153,16 @@ def positive(kind: str = "a number") -> Callable[[str], float]:
     return parse
 
 
+def output_file(text: str) -> Path:
+    """An argparse type: a file the script writes (``--json``, ``--save-series``, ``--save``), as a Path; a name that
+    ends in a path separator (``out/``: a folder, meant or not) is a one-line error. ``Path`` drops the separator: the
+    figures were written as a file named ``out`` (its folder made as needed), where the user named a folder."""
+    seps = tuple(c for c in (os.sep, os.altsep) if c)
+    if text.endswith(seps):
+        raise argparse.ArgumentTypeError(f"{text!r} ends in {text[-1]!r}, as a folder's name does: name a file")
+    return Path(text)
+
+
 def assets_folder() -> Path:
     """The shared assets folder the scripts read (GRID clips, the ICT Face Model, the James scan): where the
     ``TORCHFACE_ASSETS`` environment variable says, else ``../shared/assets`` beside the repository (as the tests

@@ -46,7 +46,7 @@ from pathlib import Path
 
 # _argtypes first (run as a command, it makes a Ctrl-C during the heavy imports below one line, status 130)
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the peers module beside this script, however it is run
-from _argtypes import file_problem, folder_problem, remove_dead_partials, written_whole  # noqa: E402
+from _argtypes import file_problem, folder_problem, output_file, remove_dead_partials, written_whole  # noqa: E402
 from _argtypes import run_command  # noqa: E402
 
 import torch
@@ -435,7 +435,7 @@ def main() -> None:
     ap.add_argument("--malloc-batches", default="128",
                     help="batches run again with glibc's MALLOC_MMAP_THRESHOLD_=256 MB (comma list; '' for none)")
     ap.add_argument("--cache", default="out/bench", help="sequence cache folder (default out/bench)")
-    ap.add_argument("--json", default=None, help="write the figures as JSON here")
+    ap.add_argument("--json", type=output_file, default=None, help="write the figures as JSON here")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--batch", type=int, default=1, help=argparse.SUPPRESS)
     ap.add_argument("--threads", type=int, default=1, help=argparse.SUPPRESS)

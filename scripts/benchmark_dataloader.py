@@ -23,7 +23,7 @@ from pathlib import Path
 
 # _argtypes first (run as a command, it makes a Ctrl-C during the heavy imports below one line, status 130)
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # _argtypes beside this script, however it is run
-from _argtypes import file_problem  # noqa: E402
+from _argtypes import file_problem, output_file  # noqa: E402
 from _argtypes import integer as _integer  # noqa: E402
 from _argtypes import run_command  # noqa: E402
 
@@ -86,7 +86,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--batch-size", type=_integer(1), default=64, help="items per batch (default 64)")
     parser.add_argument("--workers", type=_workers, default="0,2", help="comma-separated worker counts (default 0,2)")
     parser.add_argument("--repeats", type=_integer(1), default=3, help="cached epochs per worker count (default 3)")
-    parser.add_argument("--json", type=Path, default=None, help="write the figures here")
+    parser.add_argument("--json", type=output_file, default=None, help="write the figures here")
     args = parser.parse_args(argv)
     workers = args.workers
     # checked before any rendering or tracking (a --json folder failed only after the tracking epoch)

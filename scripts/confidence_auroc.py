@@ -42,7 +42,7 @@ from pathlib import Path
 
 # _argtypes first (run as a command, it makes a Ctrl-C during the heavy imports below one line, status 130)
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _argtypes import file_problem, folder_problem, frame_size, integer, written_whole  # noqa: E402
+from _argtypes import file_problem, folder_problem, frame_size, integer, output_file, written_whole  # noqa: E402
 from _argtypes import run_command  # noqa: E402
 
 import numpy as np
@@ -165,7 +165,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--bad", type=float, default=5.0, help="negatives: error above this (deg)")
     parser.add_argument("--seed", type=int, default=0,
                         help="seed of the landmark noise (evaluate.py's --seed) and of the injected errors (default 0)")
-    parser.add_argument("--save", type=Path, help="write the per-frame series here (.npz)")
+    parser.add_argument("--save", type=output_file, help="write the per-frame series here (.npz)")
     parser.add_argument("--progress-every", type=integer(0), default=20,
                         help="a progress line on stderr every N frames of a scenario's run (0: none; default 20)")
     args = parser.parse_args(argv)

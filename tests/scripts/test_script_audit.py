@@ -961,3 +961,22 @@ def test_evaluate_refuses_to_save_the_series_of_no_run(tmp_path, capsys):
     argv = ["--scenarios", "none", "--add-series", str(series), "--save-series", str(tmp_path / "b.npz")]
     assert "--scenarios none tracks nothing" in _usage_error(evaluate.main, argv, capsys)
     assert not (tmp_path / "b.npz").exists()
+
+
+@pytest.mark.parametrize("script, option", [
+    ("evaluate", "--json"), ("evaluate", "--save-series"), ("confidence_auroc", "--save"),
+    ("train_expression", "--json"), ("benchmark", "--json"), ("benchmark_device", "--json"),
+    ("benchmark_dataloader", "--json"), ("benchmark_raster", "--json"),
+])  # fmt: skip
+def test_scripts_refuse_an_output_file_named_as_a_folder(script, option, tmp_path, capsys, monkeypatch):
+    """``--json results/`` (a folder's name, with its trailing separator) passed as ``Path("results")``: the figures
+    were written as a file named ``results``. Now argparse's one-line error, before any work."""
+    module = _load(script)
+    target = f"{tmp_path / 'results'}{os.sep}"
+    argv = [option, target, "--no-such-option"]  # (without the check: argparse's own error, and no run)
+    monkeypatch.setattr(sys, "argv", [f"{script}.py", *argv])
+    with pytest.raises(SystemExit) as info:
+        module.main() if script == "benchmark" else module.main(argv)
+    err = capsys.readouterr().err
+    assert info.value.code == 2 and f"argument {option}: {target!r} ends in '{os.sep}'" in err, err
+    assert not (tmp_path / "results").exists()
