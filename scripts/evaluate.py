@@ -910,7 +910,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--size", type=frame_size, default=None,
                         help="WxH (default 640x480); even sides where a video is written (--cache, long scenarios)")
     parser.add_argument("--cache", default="out/sequences",
-                        help="sequence cache folder (default out/sequences); 'none' renders in memory")
+                        help="sequence cache folder (default out/sequences); 'none' renders in memory, the long "
+                        "scenarios into a temporary folder (they are streamed from a video: ~0.5 GB each at 640x480)")
     parser.add_argument(
         "--ablations", default="all", help=f"all, none (full only) or a comma list from {', '.join(ABLATIONS)}"
     )

@@ -980,3 +980,27 @@ def test_scripts_refuse_an_output_file_named_as_a_folder(script, option, tmp_pat
     err = capsys.readouterr().err
     assert info.value.code == 2 and f"argument {option}: {target!r} ends in '{os.sep}'" in err, err
     assert not (tmp_path / "results").exists()
+
+
+def test_evaluate_help_says_where_cache_none_puts_the_long_runs(capsys, monkeypatch):
+    """``--help`` said ``--cache none`` "renders in memory"; the long scenarios are streamed from a video even then,
+    rendered into a temporary folder (~0.5 GB each at 640x480): the help says so, as the run does."""
+    import tempfile
+
+    evaluate = _load("evaluate")
+    with pytest.raises(SystemExit):
+        evaluate.main(["--help"])
+    assert "the long scenarios into a temporary folder" in " ".join(capsys.readouterr().out.split())
+    folders = []
+
+    class Stop(Exception):
+        """Where the run would render: stop there."""
+
+    def cache(name, w, h, t, folder):
+        folders.append(folder)
+        raise Stop
+
+    monkeypatch.setattr(evaluate, "cache_sequence", cache)
+    with pytest.raises(Stop):
+        evaluate.main(["--only", "long_run", "--long-frames", "100", "--size", "64x48", "--cache", "none"])
+    assert folders[0].parent == Path(tempfile.gettempdir()) and not folders[0].exists()  # (removed at the end)
