@@ -24,6 +24,9 @@ if TYPE_CHECKING:
 EXIT_INTERRUPTED = 130
 #: The exit status of a script stopped by SIGTERM (``timeout``, ``kill``, ``docker stop``; 128 + SIGTERM).
 EXIT_TERMINATED = 143
+#: The exit status of a script whose stdout's reader has gone (``| head -1``; 128 + SIGPIPE, as ``cat``'s and
+#: ``torchface``'s).
+EXIT_BROKEN_PIPE = 141
 
 
 class _Terminated(KeyboardInterrupt):
@@ -43,7 +46,11 @@ def run_command(main: Callable[[], int | None]) -> NoReturn:
     does (:func:`torchface.cli._end_by_sigint`): a shell loop over a script (``for c in clips/*; do
     scripts/evaluate.py ...; done``) stops there, where a script that exited with 130 itself was taken for one that
     handled the Ctrl-C, and the loop went on; a shell reports 130 either way (Python's ``subprocess``: -2). Called
-    otherwise (a test), it exits with :data:`EXIT_INTERRUPTED`."""
+    otherwise (a test), it exits with :data:`EXIT_INTERRUPTED`.
+
+    A script whose stdout's reader has gone (``scripts/evaluate.py ... | head -5``) stops there without a word and
+    exits with :data:`EXIT_BROKEN_PIPE`, as ``cat`` and ``torchface`` do (a BrokenPipeError's traceback and status 1
+    before); its outputs under temporary names are removed, as on an interrupt."""
     previous = signal.getsignal(signal.SIGTERM)
 
     def terminated(signum: int, frame: object) -> None:
@@ -59,6 +66,10 @@ def run_command(main: Callable[[], int | None]) -> NoReturn:
         if not stopped:
             _end_by_sigint()
         raise SystemExit(EXIT_TERMINATED if stopped else EXIT_INTERRUPTED) from None
+    except BrokenPipeError:  # (stdout to /dev/null: Python's flush of it at exit would fail again, with a message)
+        with contextlib.suppress(OSError, ValueError, AttributeError):
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        raise SystemExit(EXIT_BROKEN_PIPE) from None
     finally:
         if previous is not None and previous is not signal.SIG_IGN:
             signal.signal(signal.SIGTERM, previous)
@@ -140,6 +151,16 @@ def positive(kind: str = "a number") -> Callable[[str], float]:
         return value
 
     return parse
+
+
+def output_file(text: str) -> Path:
+    """An argparse type: a file the script writes (``--json``, ``--save-series``, ``--save``), as a Path; a name that
+    ends in a path separator (``out/``: a folder, meant or not) is a one-line error. ``Path`` drops the separator: the
+    figures were written as a file named ``out`` (its folder made as needed), where the user named a folder."""
+    seps = tuple(c for c in (os.sep, os.altsep) if c)
+    if text.endswith(seps):
+        raise argparse.ArgumentTypeError(f"{text!r} ends in {text[-1]!r}, as a folder's name does: name a file")
+    return Path(text)
 
 
 def assets_folder() -> Path:

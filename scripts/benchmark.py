@@ -46,7 +46,7 @@ from pathlib import Path
 
 # _argtypes first (run as a command, it makes a Ctrl-C during the heavy imports below one line, status 130)
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the peers module beside this script, however it is run
-from _argtypes import file_problem, folder_problem, remove_dead_partials, written_whole  # noqa: E402
+from _argtypes import file_problem, folder_problem, output_file, remove_dead_partials, written_whole  # noqa: E402
 from _argtypes import run_command  # noqa: E402
 
 import torch
@@ -280,14 +280,19 @@ def _check_arguments(ap: argparse.ArgumentParser, args: argparse.Namespace) -> N
     if args.width < 64 or args.height < 64 or args.width % 2 or args.height % 2:
         ap.error(f"--width and --height must be even and >= 64, got {args.width}x{args.height}")
     try:
-        batches = [1, 32]  # the template-management rows
-        if not args.management_only:
-            batches += batch_list(args.batches) + batch_list(args.malloc_batches)
+        own = [] if args.management_only else batch_list(args.batches) + batch_list(args.malloc_batches)
     except ValueError:
         ap.error(f"--batches and --malloc-batches must be comma lists of integers, got {args.batches!r}, "
                  f"{args.malloc_batches!r}")  # fmt: skip
-    if any(b < 1 for b in batches) or (batches and args.frames - max(batches) < 4):
-        ap.error(f"every batch must be >= 1 and leave 4 frames of the {args.frames} (streams are offset copies)")
+    if any(b < 1 for b in own):
+        ap.error(f"every batch must be >= 1, got --batches {args.batches!r}, --malloc-batches {args.malloc_batches!r}")
+    # (the message said only "every batch must ... leave 4 frames": with --batches 1 and --frames 8 the batch at
+    # fault was the template-management rows' B = 32, which no option names)
+    largest = max([1, 32, *own])  # (1 and 32: the template-management rows)
+    if args.frames - largest < 4:
+        which = f"B = {largest}" if largest in own else "the template-management rows' B = 32"
+        ap.error(f"--frames {args.frames} is too few for {which}: stream b starts at frame b and tracks at least 4 "
+                 f"frames, so --frames must be >= {largest + 4}")  # fmt: skip
     if args.repeats < 1:
         ap.error(f"--repeats must be >= 1, got {args.repeats}")
     if args.json is not None and (problem := file_problem(Path(args.json))) is not None:
@@ -415,7 +420,7 @@ def _online_refine_row(args: argparse.Namespace, figures: dict[str, dict[str, fl
     at = runs[0]["reanchor_frame"]
     where = f"at frame {at}" if at >= 0 else "not reached"
     print(f"\nonline look-ahead start (FaceTracker default; not in the rows above), B=1, 1 thread, {frames} frames: "
-          f"+{extra:.0f} ms in all ({100.0 * extra / off:+.1f}% of the managed run's {off:.0f} ms), of which the "
+          f"{extra:+.0f} ms in all ({100.0 * extra / off:+.1f}% of the managed run's {off:.0f} ms), of which the "
           f"one-off re-anchoring {where}: {reanchor:.0f} ms")  # fmt: skip
 
 
@@ -424,12 +429,13 @@ def main() -> None:
     ap.add_argument("--width", type=int, default=640, help="frame width (default 640)")
     ap.add_argument("--height", type=int, default=480, help="frame height (default 480)")
     ap.add_argument("--frames", type=int, default=150,
-                    help="frames of the sweep used, at most 150 (streams are offset copies)")
+                    help="frames of the sweep used, at most 150 and at least the largest batch + 4 (streams are "
+                    "offset copies; the template-management rows run B = 32: 36)")
     ap.add_argument("--batches", default="1,8,32,128", help="streams per batch, comma list (default 1,8,32,128)")
     ap.add_argument("--malloc-batches", default="128",
                     help="batches run again with glibc's MALLOC_MMAP_THRESHOLD_=256 MB (comma list; '' for none)")
     ap.add_argument("--cache", default="out/bench", help="sequence cache folder (default out/bench)")
-    ap.add_argument("--json", default=None, help="write the figures as JSON here")
+    ap.add_argument("--json", type=output_file, default=None, help="write the figures as JSON here")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--batch", type=int, default=1, help=argparse.SUPPRESS)
     ap.add_argument("--threads", type=int, default=1, help=argparse.SUPPRESS)

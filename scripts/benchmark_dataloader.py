@@ -23,7 +23,7 @@ from pathlib import Path
 
 # _argtypes first (run as a command, it makes a Ctrl-C during the heavy imports below one line, status 130)
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # _argtypes beside this script, however it is run
-from _argtypes import file_problem  # noqa: E402
+from _argtypes import file_problem, output_file  # noqa: E402
 from _argtypes import integer as _integer  # noqa: E402
 from _argtypes import run_command  # noqa: E402
 
@@ -86,7 +86,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--batch-size", type=_integer(1), default=64, help="items per batch (default 64)")
     parser.add_argument("--workers", type=_workers, default="0,2", help="comma-separated worker counts (default 0,2)")
     parser.add_argument("--repeats", type=_integer(1), default=3, help="cached epochs per worker count (default 3)")
-    parser.add_argument("--json", type=Path, default=None, help="write the figures here")
+    parser.add_argument("--json", type=output_file, default=None, help="write the figures here")
     args = parser.parse_args(argv)
     workers = args.workers
     # checked before any rendering or tracking (a --json folder failed only after the tracking epoch)
@@ -128,9 +128,9 @@ def main(argv: list[str] | None = None) -> int:
         if two["faces"] < TARGET_MIN_FACES:
             # (a smoke run of 12 faces read "NOT met (median 22)": the workers' start, in the wall time, is most of
             # so short an epoch)
-            print(f"target >= 200 faces/s with 2 workers from the cache: not judged on {two['faces']} faces (median "
-                  f"{target:.0f}; the workers' start is most of so short an epoch: the target is for runs of at least "
-                  f"{TARGET_MIN_FACES} faces, the default 8 videos x 24 frames)")  # fmt: skip
+            print(f"target >= 200 faces/s with 2 workers from the cache: not judged on {two['faces']:.0f} faces "
+                  f"(median {target:.0f}; the workers' start is most of so short an epoch: the target is for runs of "
+                  f"at least {TARGET_MIN_FACES} faces, the default 8 videos x 24 frames)")  # fmt: skip
         else:
             print(f"target >= 200 faces/s with 2 workers from the cache: {'met' if target >= 200 else 'NOT met'} "
                   f"(median {target:.0f})")  # fmt: skip

@@ -32,7 +32,7 @@ from pathlib import Path
 
 # _argtypes first (run as a command, it makes a Ctrl-C during the heavy imports below one line, status 130)
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # benchmark.py and _argtypes beside this script
-from _argtypes import device_problem, file_problem, folder_problem  # noqa: E402
+from _argtypes import device_problem, file_problem, folder_problem, output_file  # noqa: E402
 from _argtypes import integer as _integer  # noqa: E402
 from _argtypes import run_command  # noqa: E402
 
@@ -118,7 +118,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--width", type=_integer(64, even=True), default=640, help="frame width (default 640)")
     ap.add_argument("--height", type=_integer(64, even=True), default=480, help="frame height (default 480)")
     ap.add_argument("--cache", default="out/bench", help="sequence cache folder (default out/bench)")
-    ap.add_argument("--json", default=None, help="write the figures as JSON here")
+    ap.add_argument("--json", type=output_file, default=None, help="write the figures as JSON here")
     args = ap.parse_args(argv)
     try:
         batches, cpu_batches = batch_list(args.batches), batch_list(args.cpu_batches)
@@ -127,6 +127,8 @@ def main(argv: list[str] | None = None) -> int:
                  f"{args.cpu_batches!r}")  # fmt: skip
     if any(b < 1 for b in batches + cpu_batches):
         ap.error("every batch must be >= 1")
+    if not batches + cpu_batches:  # (the frames were rendered, then no row run: a bare header, exit status 0)
+        ap.error("--batches and --cpu-batches are both empty: no row to run")
     if args.frames > 150:
         ap.error(f"--frames must be in 4..150 (the sweep's slow first half), got {args.frames}")
     if (problem := device_problem(args.device)) is not None:

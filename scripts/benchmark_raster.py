@@ -22,7 +22,7 @@ from pathlib import Path
 
 # _argtypes first (run as a command, it makes a Ctrl-C during the heavy imports below one line, status 130)
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # _argtypes beside this script, however it is run
-from _argtypes import device_problem, file_problem  # noqa: E402
+from _argtypes import device_problem, file_problem, output_file  # noqa: E402
 from _argtypes import integer as _integer  # noqa: E402
 from _argtypes import run_command  # noqa: E402
 
@@ -104,7 +104,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--dtype", choices=("float32", "float64"), default="float32",
                         help="dtype of the vertices rasterized (default float32)")
     parser.add_argument("--batches", type=_integer(1), nargs="+", default=[1, 8], help="batch sizes (default 1 8)")
-    parser.add_argument("--json", type=Path, default=None, help="write the figures to this JSON file")
+    parser.add_argument("--json", type=output_file, default=None, help="write the figures to this JSON file")
     args = parser.parse_args(argv)
     # one-line errors before any timing, not tracebacks (a --json folder: after every row was timed)
     # (an unknown device, one torch was built without, or meta: a NotImplementedError's traceback in the first row)

@@ -135,9 +135,11 @@ def main() -> None:
     ap.add_argument("--cache", type=Path, default=ROOT / "out" / "bench", help="where the clips are kept")
     args = ap.parse_args()
     args.cache = args.cache.resolve()  # (the runs' working folder is their output's: a relative clip was not found)
-    sizes = [s for s in args.sizes.split(",") if s]
+    sizes = list(dict.fromkeys(s.strip() for s in args.sizes.split(",") if s.strip()))  # (a size twice: once)
     if unknown := [s for s in sizes if s not in SIZES]:
         ap.error(f"--sizes: unknown {', '.join(unknown)} (known: {', '.join(SIZES)})")
+    if not sizes:  # (the clips were rendered, then nothing run: a header without rows, exit status 0)
+        ap.error(f"--sizes: none given; choose from {', '.join(SIZES)}")
     if (problem := folder_problem(args.cache)) is not None:  # (mkdir's traceback once the clips were rendered)
         ap.error(f"--cache {args.cache}: {problem}")
     if args.reference is not None and not (args.reference / "torchface" / "__init__.py").is_file():

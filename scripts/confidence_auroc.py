@@ -42,7 +42,7 @@ from pathlib import Path
 
 # _argtypes first (run as a command, it makes a Ctrl-C during the heavy imports below one line, status 130)
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _argtypes import file_problem, folder_problem, frame_size, integer, written_whole  # noqa: E402
+from _argtypes import file_problem, folder_problem, frame_size, integer, output_file, written_whole  # noqa: E402
 from _argtypes import run_command  # noqa: E402
 
 import numpy as np
@@ -165,12 +165,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--bad", type=float, default=5.0, help="negatives: error above this (deg)")
     parser.add_argument("--seed", type=int, default=0,
                         help="seed of the landmark noise (evaluate.py's --seed) and of the injected errors (default 0)")
-    parser.add_argument("--save", type=Path, help="write the per-frame series here (.npz)")
+    parser.add_argument("--save", type=output_file, help="write the per-frame series here (.npz)")
     parser.add_argument("--progress-every", type=integer(0), default=20,
                         help="a progress line on stderr every N frames of a scenario's run (0: none; default 20)")
     args = parser.parse_args(argv)
-    names = list(SCENARIOS) if args.scenarios == "all" else [s.strip() for s in args.scenarios.split(",")]
-    variants = [v.strip() for v in args.variants.split(",") if v.strip()]
+    # (each once, empty items skipped, as evaluate.py reads its lists: a scenario given twice was tracked twice, a
+    # variant given twice had its tables printed twice, and a trailing comma was an "unknown scenario ''")
+    names = list(SCENARIOS) if args.scenarios == "all" else [s.strip() for s in args.scenarios.split(",") if s.strip()]
+    names = list(dict.fromkeys(names))
+    variants = list(dict.fromkeys(v.strip() for v in args.variants.split(",") if v.strip()))
     for v in variants:
         if v not in VARIANTS:
             parser.error(f"unknown variant {v!r}; choose from {', '.join(VARIANTS)}")
@@ -179,6 +182,8 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(f"unknown scenario {name!r}; choose from {', '.join(SCENARIOS)} or all")
     if not variants:
         parser.error(f"--variants: none given; choose from {', '.join(VARIANTS)}")
+    if not names:
+        parser.error(f"--scenarios: none given; choose from {', '.join(SCENARIOS)} or all")
     if variants == ["no_illum"] and "light_switch" not in names:  # (rendered, then nothing run nor printed: exit 0)
         parser.error("--variants no_illum runs on light_switch only, which --scenarios leaves out")
     if args.frames is not None and args.frames < 2:

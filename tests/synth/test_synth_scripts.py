@@ -443,9 +443,10 @@ def test_benchmark_dataloader_judges_its_target_on_full_runs_only(capsys, monkey
     dataloader = _load("benchmark_dataloader")
     monkeypatch.setattr(dataloader, "render_videos", lambda root, count, frames, w, h: ([root] * count, [None] * count))
 
-    def throughput(data, workers, batch_size):  # 50 faces/s, the cache read from the second pass on
+    def throughput(data, workers, batch_size):  # 50 faces/s, the cache read from the second pass on; a float
+        # count, as loader_throughput gives it (printed "not judged on 12.0 faces")
         data["passes"] += 1
-        return {"faces": data["faces"], "seconds": data["faces"] / 50, "faces_per_s": 50.0,
+        return {"faces": float(data["faces"]), "seconds": data["faces"] / 50, "faces_per_s": 50.0,
                 "cached_fraction": float(data["passes"] > 1)}  # fmt: skip
 
     monkeypatch.setattr(dataloader, "loader_throughput", throughput)
