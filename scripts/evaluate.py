@@ -114,7 +114,7 @@ from torchface.tracker.fit import LandmarkFit
 from torchface.tracker.lookahead import LookaheadConfig, lookahead_fit
 from torchface.tracker.module import FaceTracker
 from torchface.tracker.smoothing import SmoothingConfig, reanchored_streams, smooth_pose_series
-from torchface.tracker.step import TrackerConfig, TrackStatus
+from torchface.tracker.step import MAX_SELECTION_SEED, TrackerConfig, TrackStatus
 
 from peers import DEFAULT_TIMEOUT_S, MediaPipeTimeout, add_options, check_python, opencv_rotations, run_mediapipe  # noqa: E402
 
@@ -159,6 +159,10 @@ RETURN_TARGET_DEG: float = 1.0
 GOOD_DEG: float = 2.0
 BAD_DEG: float = 5.0
 AUROC_TARGET: float = 0.9
+
+#: The largest seed the options take (--seed, --noise-seeds, --selection-seeds): torch's generators take seeds below
+#: 2**64, the template points' (TrackerConfig.selection_seed) up to 2**63 - 1.
+MAX_SEED: int = MAX_SELECTION_SEED
 
 
 def log(msg: str) -> None:
@@ -1084,6 +1088,11 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--selection-seeds must be a comma list of integers, got {args.selection_seeds!r}")
     if any(x < 0 for x in selection_seeds):
         parser.error(f"--selection-seeds must be integers >= 0, got {args.selection_seeds!r}")
+    # (a seed past torch's generators' range failed with "Overflow when unpacking long long" after the rendering)
+    for option, seeds in (("--seed", [args.seed]), ("--noise-seeds", noise_seeds),
+                          ("--selection-seeds", selection_seeds)):  # fmt: skip
+        if wrong := [x for x in seeds if not 0 <= x <= MAX_SEED]:
+            parser.error(f"{option} must be integers in [0, 2**63 - 1], got {wrong[0]}")
     if args.threads is not None and args.threads < 1:
         parser.error(f"--threads must be >= 1, got {args.threads}")
     try:

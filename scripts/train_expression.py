@@ -451,8 +451,9 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     # Checked before anything runs: a --json folder failed only at the very end, after the whole run, and left
     # a <json>.partial file behind; an --out under a file failed with a traceback.
-    if args.seed < 0:
-        p.error(f"--seed must be an integer >= 0, got {args.seed}")
+    if not 0 <= args.seed < 2**32:  # (a seed past torch's generators' range, or its seed * 10 + fold, failed with
+        # "Overflow when unpacking long long" after the tracking)
+        p.error(f"--seed must be an integer in [0, 2**32 - 1], got {args.seed}")
     if args.threads < 1:
         p.error(f"--threads must be >= 1, got {args.threads}")
     if (problem := folder_problem(args.out)) is not None:

@@ -1004,3 +1004,14 @@ def test_evaluate_help_says_where_cache_none_puts_the_long_runs(capsys, monkeypa
     with pytest.raises(Stop):
         evaluate.main(["--only", "long_run", "--long-frames", "100", "--size", "64x48", "--cache", "none"])
     assert folders[0].parent == Path(tempfile.gettempdir()) and not folders[0].exists()  # (removed at the end)
+
+
+def test_evaluate_refuses_seeds_past_torchs_range_before_any_work(capsys, monkeypatch):
+    """A seed past torch's generators' range (``--seed 2**64``, in ``--noise-seeds`` or ``--selection-seeds``) failed
+    with "Overflow when unpacking long long" after the rendering and tracking; now a one-line error first."""
+    evaluate = _load("evaluate")
+    monkeypatch.setattr(evaluate, "load_candide3", None)  # any run would fail the test: none may start
+    for option, value in (("--seed", str(2**64)), ("--noise-seeds", f"0,{2**64}"), ("--selection-seeds", str(2**63)),
+                          ("--seed", "-1")):  # fmt: skip
+        argv = ["--only", "pose_sweep", option, value, "--cache", "none"]
+        assert f"{option} must be integers in [0, 2**63 - 1], got " in _usage_error(evaluate.main, argv, capsys)

@@ -39,7 +39,7 @@ from torchface.tracker import (
     initialise_managed,
     track_step,
 )
-from torchface.tracker.step import TrackSolver, crop_windows, gray_pyramid, level_intrinsics
+from torchface.tracker.step import MAX_SELECTION_SEED, TrackSolver, crop_windows, gray_pyramid, level_intrinsics
 
 W, H = 320, 240
 T = 6
@@ -408,6 +408,9 @@ def test_config_validation():
         TrackerConfig(max_points=4)
     with pytest.raises(ValueError, match="selection_seed"):
         TrackerConfig(selection_seed=-1)
+    with pytest.raises(ValueError, match=r"^selection_seed must be an integer in \[0, 2\*\*63 - 1\], got 18446744073709551616$"):
+        TrackerConfig(selection_seed=2**64)  # (torch's "Overflow when unpacking long long" at the first template)
+    assert TrackerConfig(selection_seed=2**63 - 1).selection_seed == MAX_SELECTION_SEED
     for bad in (1.0, True):  # a wrong type is a TypeError (it was a ValueError)
         with pytest.raises(TypeError, match="selection_seed"):
             TrackerConfig(selection_seed=bad)  # type: ignore[arg-type]

@@ -78,6 +78,7 @@ def test_bad_out_and_json_paths_are_refused_before_the_run(tmp_path, capsys):
         (["--out", str(dangling / "run")], "symbolic link to"),
         (["--out", str(out), "--json", str(dangling / "figures.json")], "symbolic link to"),  # (after the whole run)
         (["--out", str(out), "--seed", "-1"], "--seed"),
+        (["--out", str(out), "--seed", str(2**64)], "--seed must be an integer in [0, 2**32 - 1]"),
     ):
         with pytest.raises(SystemExit) as exc:
             script.main(["--quick", *argv])

@@ -177,6 +177,11 @@ def usable_status(status: Tensor) -> Tensor:
     return (status != int(TrackStatus.FAILED)) & (status != int(TrackStatus.LOST))
 
 
+#: The largest :attr:`TrackerConfig.selection_seed` (torch's generators take seeds below 2**64; the pixel keys' seed
+#: adds the frame size to it).
+MAX_SELECTION_SEED: int = 2**63 - 1
+
+
 @dataclass(frozen=True)
 class TrackerConfig:
     """Settings of the tracker.
@@ -318,7 +323,8 @@ class TrackerConfig:
         selection_seed: which draw of the pixels' selection keys picks each template's ``max_points`` among its
             candidate pixels (the first frame's and the mosaic entries'; a function of the pixel, so batches
             and single streams agree). 0 is the default draw; any other seed draws another, equally uniform
-            subset. The figures of a turn on a face unlike the model move with the draw (docs/limitations.md: ``scan_motion``'s max error 4.85, 5.49 and 5.35 degrees with seeds 0, 1 and 2), which
+            subset; seeds lie in ``[0, 2**63 - 1]`` (:data:`MAX_SELECTION_SEED`).
+            The figures of a turn on a face unlike the model move with the draw (docs/limitations.md: ``scan_motion``'s max error 4.85, 5.49 and 5.35 degrees with seeds 0, 1 and 2), which
             ``scripts/evaluate.py --selection-seeds`` measures.
         template: template management (:class:`~torchface.template.management.TemplateConfig`): dissimilarity
             confidence, gating, the pose-keyed mosaic, loss and recovery; used by
@@ -384,6 +390,9 @@ class TrackerConfig:
         for name, low in (("num_levels", 1), ("max_points", 8), ("min_points", 0), ("refine_iterations", 0),
                           ("visibility_interval", 1), ("selection_seed", 0)):  # fmt: skip
             object.__setattr__(self, name, check_int(getattr(self, name), name, low))
+        if self.selection_seed > MAX_SELECTION_SEED:  # (2**64 was taken, then torch's "Overflow when unpacking long
+            # long" at the first frame's template)
+            raise ValueError(f"selection_seed must be an integer in [0, 2**63 - 1], got {self.selection_seed}")
         object.__setattr__(self, "iterations", check_ints(self.iterations, "iterations"))  # 6.5 was taken here
         # Each number's range, stated once (check_number: a wrong type a TypeError naming it, "0.2" included; NaN or
         # an infinite value a ValueError: inf passed ">= 0" as a tolerance, a precision or a margin).
