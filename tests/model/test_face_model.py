@@ -217,6 +217,10 @@ def test_construction_refuses_non_finite_values_reversed_ranges_and_unnormalised
         FaceModel(**dict(fields, animation_ranges=ranges))
     with pytest.raises(ValueError, match="landmark_weights rows must sum to one"):
         FaceModel(**dict(fields, landmark_weights=model.landmark_weights * 2.0))
+    ranges = model.animation_ranges.clone()
+    ranges[3] = torch.tensor([0.2, 1.0])  # (0 outside: the fit's start and the prior's centre; the tracking drifted)
+    with pytest.raises(ValueError, match=r"must hold 0 .* got \[0.2, 1\] for 'AUV3 Brow lowerer'"):
+        FaceModel(**dict(fields, animation_ranges=ranges))
     assert FaceModel(**fields).to(torch.float64).num_animation == 11  # the model itself passes, in any dtype
 
 

@@ -56,6 +56,20 @@ def test_trimesh_input_with_bases():
     assert (outward_flux(model.mean, model.faces) > 0).all()
 
 
+def test_animation_ranges_that_exclude_zero_are_refused():
+    """A unit whose range excludes 0 (``[0.2, 1]``) was taken: the first frame's fit starts it at 0 and its prior is
+    centred there, outside its range, and the tracking drifted. Refused, naming the unit and how to re-centre; a
+    range with 0 at an end, or only 0, is taken."""
+    mesh = trimesh.Trimesh(TET_V, TET_F, process=False)
+    blend = np.zeros((2, 5, 3))
+    blend[:, 3] = [0.0, 0.0, 1.0]
+    for ranges, unit in (([[0.2, 1.0], [0.2, 1.0]], "'up'"), ([[0.0, 1.0], [-1.0, -0.5]], "'down'")):
+        with pytest.raises(ValueError, match=rf"animation_ranges must hold 0 .* got \[-?[\d.]+, -?[\d.]+\] for {unit}"):
+            load_mesh_model(mesh, blendshapes=blend, blendshape_names=["up", "down"], animation_ranges=ranges)
+    model = load_mesh_model(mesh, blendshapes=blend, animation_ranges=[[0.0, 0.0], [-1.0, 0.0]])
+    assert model.animation_ranges.tolist() == [[0.0, 0.0], [-1.0, 0.0]]
+
+
 def test_arrays_given_as_views_with_negative_strides():
     """NumPy arguments that are views with a negative stride (``a[::-1]``, ``faces[:, ::-1]`` to turn a winding)
     load as their copies do: ``animation_ranges`` was torch's "At least one stride in the given numpy array is

@@ -257,7 +257,7 @@ class FaceModel:
         shape_names: ``S`` names.
         animation_units: ``(A, V, 3)`` displacement (mm) per unit animation coefficient.
         animation_names: ``A`` names.
-        animation_ranges: ``(A, 2)`` plausible ``[lo, hi]`` range of each animation coefficient.
+        animation_ranges: ``(A, 2)`` plausible ``[lo, hi]`` range of each animation coefficient, holding 0.
         landmark_vertices: ``(K, 3)`` int64 vertex indices of each landmark.
         landmark_weights: ``(K, 3)`` non-negative weights (within 1e-2), ``l_k = sum_j w[k, j] verts[idx[k, j]]``;
             rows sum to one (within 1e-2).
@@ -267,8 +267,8 @@ class FaceModel:
         surface_vertex_mask: ``(V,)`` bool, ``True`` for exactly the vertices used by a face.
 
     Construction checks the shapes, dtypes and devices above, that the shape, animation and FACS names are
-    distinct within each tuple, that the floating tensors are finite, that each animation range has ``lo <= hi``
-    and that the landmark weights are non-negative with rows that sum to one (within 1e-2:
+    distinct within each tuple, that the floating tensors are finite, that each animation range has
+    ``lo <= 0 <= hi`` (0, the mean mesh, is where the tracker starts each unit and centres its prior) and that the landmark weights are non-negative with rows that sum to one (within 1e-2:
     :func:`check_landmark_weights`), that the indices index vertices and that ``surface_vertex_mask`` marks those
     of the faces, and raises ``ValueError`` (``TypeError`` for a field of the wrong type) otherwise.
 
@@ -352,6 +352,18 @@ class FaceModel:
         if reversed_ranges:
             names = [self.animation_names[a] for a in reversed_ranges]
             raise ValueError(f"animation_ranges must be [lo, hi] with lo <= hi, reversed for {names}")
+        # (a range that excludes 0 was taken: the first frame's fit starts each unit at 0 and the expression prior is
+        # centred there, outside the range, and the tracking drifted)
+        without_zero = ((self.animation_ranges[:, 0] > 0) | (self.animation_ranges[:, 1] < 0)).nonzero().flatten()
+        if without_zero.numel():
+            a = int(without_zero[0])
+            lo, hi = (float(v) for v in self.animation_ranges[a])
+            raise ValueError(
+                f"animation_ranges must hold 0 (lo <= 0 <= hi: a coefficient of 0 is the mean mesh, where the first "
+                f"frame's fit starts and the expression prior is centred), got [{lo:g}, {hi:g}] for "
+                f"{self.animation_names[a]!r} ({without_zero.numel()} of the {self.num_animation} units): make the "
+                "mean a face inside the ranges (add lo times each unit to it and subtract lo from its range)"
+            )
         check_landmark_weights(self.landmark_weights, self.landmark_names)
         if self.faces.numel() and (int(self.faces.min()) < 0 or int(self.faces.max()) >= num_v):
             got = (int(self.faces.min()), int(self.faces.max()))

@@ -306,7 +306,8 @@ def load_mesh_model(
             1e-2 below zero, a rounding error, is made zero: the rule of
             :func:`~torchface.model.face_model.check_landmark_weights`), or ``None``: each landmark on its vertex.
         animation_ranges: ``(A, 2)`` ``[lo, hi]`` per blendshape (default ``[0, 1]``, the blendshape-weight
-            convention).
+            convention), each holding 0 (the neutral mesh: the tracker starts each unit there and centres its
+            prior there).
         facs_links: blendshape name -> the FACS AUs it is linked to, a tuple of names or one name (``"AU26"``
             is one AU, not four; blendshapes not listed link to nothing; a name that is no blendshape's is refused).
         scale_to_mm: millimetres per mesh unit (1000 for a mesh in metres, 10 in centimetres). A model whose used
@@ -328,7 +329,7 @@ def load_mesh_model(
             integers.
         ValueError: a vertex of the mesh is not finite (NaN or inf; a basis's are refused as :class:`FaceModel`
             refuses them), a basis, name list, landmark index or range has the wrong size, a basis entry is a whole
-            mesh (close to the mesh itself) rather than a displacement, ``landmark_vertices`` is not 1-D (2-D with
+            mesh (close to the mesh itself) rather than a displacement, a range does not hold 0, ``landmark_vertices`` is not 1-D (2-D with
             ``landmark_weights`` of its shape, at most 3 columns) or holds fractions, ``landmark_weights`` are not
             finite, one is negative or a row does not sum to one (each within 1e-2), the file holds no triangles,
             they are not wound consistently (or a triangle is given in both windings, a double-sided mesh) or the
