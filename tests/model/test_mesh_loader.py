@@ -70,6 +70,18 @@ def test_animation_ranges_that_exclude_zero_are_refused():
     assert model.animation_ranges.tolist() == [[0.0, 0.0], [-1.0, 0.0]]
 
 
+def test_landmarks_off_the_surface_are_refused():
+    """A landmark on the tetrahedron's unused vertex 4, or weighted over two vertices of no edge: refused (they were
+    taken, though the landmark is on no triangle); on an edge's two vertices it loads."""
+    mesh = trimesh.Trimesh(np.r_[TET_V, [[2.0, 2, 2]]], np.r_[TET_F, [[1, 2, 5]]], process=False)
+    with pytest.raises(ValueError, match=r"landmark 1 \('tip'\) lies on vertex 4 \(weight 1\), which no face uses"):
+        load_mesh_model(mesh, landmark_vertices=[3, 4], landmark_names=["a", "tip"])
+    with pytest.raises(ValueError, match=r"landmark 0 \('landmark0'\) has non-zero weights on vertices \[3, 5\]"):
+        load_mesh_model(mesh, landmark_vertices=[[3, 5]], landmark_weights=[[0.5, 0.5]])
+    model = load_mesh_model(mesh, landmark_vertices=[[2, 5]], landmark_weights=[[0.5, 0.5]])
+    assert model.landmark_vertices.tolist() == [[2, 5, 2]]
+
+
 def test_arrays_given_as_views_with_negative_strides():
     """NumPy arguments that are views with a negative stride (``a[::-1]``, ``faces[:, ::-1]`` to turn a winding)
     load as their copies do: ``animation_ranges`` was torch's "At least one stride in the given numpy array is

@@ -327,13 +327,14 @@ def load_mesh_model(
             one string (a sequence of names is expected), ``facs_links`` is not a dict or a value of it is neither
             an AU name nor a collection of them, ``scale_to_mm`` is not a number, or ``landmark_vertices`` are not
             integers.
-        ValueError: a vertex of the mesh is not finite (NaN or inf; a basis's are refused as :class:`FaceModel`
-            refuses them), a basis, name list, landmark index or range has the wrong size, a basis entry is a whole
-            mesh (close to the mesh itself) rather than a displacement, a range does not hold 0, ``landmark_vertices`` is not 1-D (2-D with
-            ``landmark_weights`` of its shape, at most 3 columns) or holds fractions, ``landmark_weights`` are not
-            finite, one is negative or a row does not sum to one (each within 1e-2), the file holds no triangles,
-            they are not wound consistently (or a triangle is given in both windings, a double-sided mesh) or the
-            frontal view sees mostly their back, ``to_head_frame`` is not orthogonal, ``scale_to_mm`` is not
+        ValueError: a vertex of the mesh is not finite (NaN or inf; a basis's are refused as :class:`FaceModel` refuses
+            them), a basis, name list, landmark index or range has the wrong size, a basis entry is a whole mesh (close
+            to the mesh itself) rather than a displacement, a range does not hold 0, ``landmark_vertices`` is not 1-D
+            (2-D with ``landmark_weights`` of its shape, at most 3 columns) or holds fractions, ``landmark_weights`` are
+            not finite, one is negative or a row does not sum to one (each within 1e-2), a landmark is on a vertex no
+            triangle uses or weighted over vertices that are not one triangle's (or edge's), the file holds no
+            triangles, they are not wound consistently (or a triangle is given in both windings, a double-sided mesh) or
+            the frontal view sees mostly their back, ``to_head_frame`` is not orthogonal, ``scale_to_mm`` is not
             positive and finite, a ``facs_links`` name is not a blendshape name, or ``device`` is not a device this
             machine has (the message lists those it has).
 
