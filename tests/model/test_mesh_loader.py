@@ -330,6 +330,42 @@ def test_a_face_of_implausible_size_warns_about_scale_to_mm():
         load_mesh_model(trimesh.Trimesh(mean, faces, process=False))
 
 
+def test_blendshapes_in_another_unit_than_the_mesh_warn(tmp_path):
+    """Blendshapes in metres on a mesh in millimetres (a jaw that barely moves) were taken without a word, as were
+    blendshapes in millimetres on a mesh in metres; the span warning looks at the mesh alone. Both warn, naming the
+    unit that moves most; CANDIDE-3's own, in either unit with its mesh, do not; nor does a file's model saved or
+    loaded, unless its blendshapes are so."""
+    import dataclasses
+    import warnings
+
+    from torchface.model import load_candide3, load_face_model, save_face_model
+
+    c = load_candide3(dtype=torch.float64)
+    mean, faces, units = c.mean.numpy(), c.faces.numpy(), c.animation_units.numpy()
+    ranges = c.animation_ranges.numpy()
+    mesh = trimesh.Trimesh(mean, faces, process=False)
+    said = (r"the blendshapes move the mesh by at most 0.0429 mesh units within their animation_ranges "
+            r"\('AUV11 Jaw drop'\), 0.000218 of the mesh's span of 197 mesh units; .* are the blendshapes in")
+    with pytest.warns(UserWarning, match=said):
+        load_mesh_model(mesh, blendshapes=units / 1000.0, blendshape_names=c.animation_names, animation_ranges=ranges)
+    with pytest.warns(UserWarning, match=r"at most 42.9 mesh units .* 218 of the mesh's span of 0.197 mesh units"):
+        load_mesh_model(trimesh.Trimesh(mean / 1000.0, faces, process=False), blendshapes=units,
+                        blendshape_names=c.animation_names, animation_ranges=ranges, scale_to_mm=1000.0)  # fmt: skip
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        load_mesh_model(mesh, blendshapes=units, animation_ranges=ranges)
+        load_mesh_model(trimesh.Trimesh(mean / 1000.0, faces, process=False), blendshapes=units / 1000.0,
+                        animation_ranges=ranges, scale_to_mm=1000.0)  # fmt: skip
+        load_mesh_model(mesh, blendshapes=np.zeros_like(units))  # (nothing moves: nothing to judge)
+        save_face_model(c, tmp_path / "c.npz")
+        load_face_model(tmp_path / "c.npz")
+    small = dataclasses.replace(c, animation_units=c.animation_units / 1000.0)
+    with pytest.warns(UserWarning, match=r"at most 0.0429 mm .* span of 197 mm"):
+        save_face_model(small, tmp_path / "s.npz")
+    with pytest.warns(UserWarning, match=r"at most 0.0429 mm"):
+        load_face_model(tmp_path / "s.npz")
+
+
 def test_repeated_blendshape_names_are_refused_at_load():
     with pytest.raises(ValueError, match=r"animation_names must be distinct .* repeated: \['browDown'\]"):
         load_mesh_model(trimesh.Trimesh(TET_V, TET_F, process=False), blendshapes=np.zeros((2, 5, 3)),
