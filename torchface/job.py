@@ -318,7 +318,8 @@ class JobConfig:
         out_dir: output folder (created if missing); a ``str`` or any ``os.PathLike``, as the paths below.
         landmarks: one landmarks file per video (68 iBUG points of its first frame; with ``model``, that model's
             landmarks, in its order: :func:`torchface.io.read_landmarks`'s ``count``), or empty to use the detector;
-            a sequence even for one video (a single path raises TypeError).
+            a sequence even for one video (a single path raises TypeError; ``""`` and a ``"~/lm.csv"`` nothing
+            expands are refused, as ``out_dir``'s).
         detector: detector name (:mod:`torchface.detect`) used when no landmarks file is given (on the first
             frame, and each next one until it finds a face: the video is tracked from there), to re-initialise
             the pose of a stream whose confidence stays below ``redetect_below`` for ``redetect_after`` frames,
@@ -468,6 +469,7 @@ class JobConfig:
                             ) from None  # fmt: skip
         for k, lm in enumerate(self.landmarks):
             _check_path(lm, f"landmarks[{k}]", "a landmarks file")
+            check_no_tilde(lm, f"landmarks[{k}]")  # (as model: "~/lm.csv" was taken, then "no such file" in the job)
         check_refine_first(self.refine_first)
         # (the types of the settings that hold settings or names: a lookahead="yes" was an AttributeError "'str'
         # object has no attribute 'max_frames'" once the videos were opened, a tracker dict a TypeError there)
