@@ -318,7 +318,8 @@ class JobConfig:
         out_dir: output folder (created if missing); a ``str`` or any ``os.PathLike``, as the paths below.
         landmarks: one landmarks file per video (68 iBUG points of its first frame; with ``model``, that model's
             landmarks, in its order: :func:`torchface.io.read_landmarks`'s ``count``), or empty to use the detector;
-            a sequence even for one video (a single path raises TypeError).
+            a sequence even for one video (a single path raises TypeError; ``""`` and a ``"~/lm.csv"`` nothing
+            expands are refused, as ``out_dir``'s).
         detector: detector name (:mod:`torchface.detect`) used when no landmarks file is given (on the first
             frame, and each next one until it finds a face: the video is tracked from there), to re-initialise
             the pose of a stream whose confidence stays below ``redetect_below`` for ``redetect_after`` frames,
@@ -468,6 +469,7 @@ class JobConfig:
                             ) from None  # fmt: skip
         for k, lm in enumerate(self.landmarks):
             _check_path(lm, f"landmarks[{k}]", "a landmarks file")
+            check_no_tilde(lm, f"landmarks[{k}]")  # (as model: "~/lm.csv" was taken, then "no such file" in the job)
         check_refine_first(self.refine_first)
         # (the types of the settings that hold settings or names: a lookahead="yes" was an AttributeError "'str'
         # object has no attribute 'max_frames'" once the videos were opened, a tracker dict a TypeError there)
@@ -2927,6 +2929,27 @@ def _track_locked(
     return _track_opened(streams, inputs, config, detector, model, out_dir, progress, summaries, len(pending))
 
 
+def _check_frame_sizes(streams: list[_Stream], config: JobConfig) -> None:
+    """Refuse the run where a video's frames are too small for the tracker's pyramid (``config.tracker.num_levels``
+    levels need at least ``3 * 2 ** (num_levels - 2)`` pixels a side, the check of
+    :func:`~torchface.tracker.step.check_initialise_inputs`; the levels :func:`~torchface.tracker.step.
+    pyramid_for_faces` adds, and the look-ahead's and online start's, which are cut to the tracker's, fit any frame
+    that passes), from the sizes the opened inputs declare. The tracker refused them only at its batch's start, after
+    a fresh run had cleared the earlier run's outputs of the videos: the error left ``.partial`` files in their place.
+
+    Raises:
+        ValueError: the first such video, named, with its size and the least one.
+    """
+    levels = config.tracker.num_levels
+    side = 3 * 2 ** (levels - 2) if levels > 1 else 1  # (pyr_down needs 3 pixels a side: the tracker's rule)
+    for s in streams:
+        H, W = s.reader.info.height, s.reader.info.width
+        if min(H, W) < side:
+            raise ValueError(f"{s.reader.info.path}: frames must be at least {side}x{side} pixels for "
+                             f"tracker.num_levels = {levels}, got {W}x{H} (W x H): track it with fewer pyramid levels "
+                             "(TrackerConfig.num_levels and its iterations)")  # fmt: skip
+
+
 def _track_opened(
     streams: list[_Stream], inputs: list[Path], config: JobConfig, detector, model: FaceModel, out_dir: Path,
     progress: Callable[[Progress], None] | None, summaries: dict[str, VideoSummary], count: int,
@@ -2935,6 +2958,7 @@ def _track_opened(
     checked; ``summaries``: of the videos ``resume`` skipped, and those ``keep_going`` skipped): track and write them,
     batch by batch."""
     try:
+        _check_frame_sizes(streams, config)  # (before a fresh run clears the earlier outputs: it raised at the start)
         if not config.resume:  # a fresh run (the inputs keep_going skipped too: every complete output is this run's)
             earlier = [(s.name, Path(s.reader.info.path)) for s in streams]
             earlier += [(x.name, x.input) for x in summaries.values() if x.refused]

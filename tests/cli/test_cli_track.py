@@ -4161,7 +4161,11 @@ def test_job_config_and_track_videos_refuse_a_missing_or_empty_path(tmp_path, mo
                                                                r".*give os\.path\.expanduser\('~/o'\)$"),
                              (dict(out_dir="o", landmarks=(None,)), TypeError, r"landmarks\[0\] must be a path"),
                              (dict(out_dir="o", landmarks=("a.csv", "")), ValueError, r"landmarks\[1\] is an empty"),
-                             (dict(out_dir="o", landmarks=5), TypeError, "landmarks must be a tuple")):  # fmt: skip
+                             (dict(out_dir="o", landmarks=5), TypeError, "landmarks must be a tuple"),
+                             # (taken, as model="~/m.npz" was: the job then said "no such file")
+                             (dict(out_dir="o", landmarks=("a.csv", "~/lm.csv")), ValueError,
+                              r"landmarks\[1\] '~/lm.csv' starts with '~', which is not expanded .*give "
+                              r"os\.path\.expanduser\('~/lm.csv'\)$")):  # fmt: skip
         with pytest.raises(error, match=said):
             JobConfig(**bad)
     assert list(tmp_path.iterdir()) == []
@@ -4175,6 +4179,7 @@ def test_job_config_and_track_videos_refuse_a_missing_or_empty_path(tmp_path, mo
     assert config.landmarks == ("a.csv", Path("b.csv")) and isinstance(config.landmarks, tuple)
     # a '~x' that no user's home expands is a folder's name as any other
     assert JobConfig(out_dir="~torchface-no-such-user").out_dir == "~torchface-no-such-user"
+    assert JobConfig(out_dir="o", landmarks=("~torchface-no-such-user.csv",)).landmarks[0][0] == "~"
 
 
 def test_a_detector_restart_that_fails_is_counted_in_the_sidecar(clip, tmp_path, monkeypatch):

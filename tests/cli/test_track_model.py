@@ -202,6 +202,23 @@ def test_settings_of_another_models_units_are_refused_before_earlier_outputs_are
     track_videos([video], replace(config, lookahead=LookaheadConfig(), refine_first=LookaheadConfig(shape_units=(S,))))
 
 
+def test_frames_too_small_for_the_pyramid_are_refused_before_earlier_outputs_are_touched(clip, tmp_path):
+    """A tracker of 8 pyramid levels needs frames of at least 192x192; on the 160x120 clip, over the complete outputs
+    of an earlier run, it was refused only at the batch's start, after the fresh run had cleared those outputs: the
+    ValueError left ``.csv.partial`` and ``.record.partial`` in their place. Refused before, naming the video, with
+    the outputs byte for byte as they were."""
+    video, root = clip
+    config = JobConfig(tmp_path, landmarks=(root / "lm26.csv",), model=root / "other.npz")
+    track_videos([video], config)
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir() if p.is_file()}
+    deep = TrackerConfig(num_levels=8, iterations=(4,) * 8)
+    said = rf"{video.name}: frames must be at least 192x192 pixels for tracker.num_levels = 8, got 160x120 \(W x H\)"
+    for bad in (dict(tracker=deep), dict(tracker=deep, lookahead=LookaheadConfig())):
+        with pytest.raises(ValueError, match=said):
+            track_videos([video], replace(config, **bad))
+        assert {p.name: p.read_bytes() for p in tmp_path.iterdir() if p.is_file()} == before, bad
+
+
 def test_a_job_keeps_no_model_alive_after_it(clip, tmp_path):
     """The job's model (on its device) is not held once the job is over (an lru_cache of its digest kept the last
     job's model alive: on a GPU, its memory)."""

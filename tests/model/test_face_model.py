@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import re
 
 import pytest
 import torch
@@ -217,6 +218,10 @@ def test_construction_refuses_non_finite_values_reversed_ranges_and_unnormalised
         FaceModel(**dict(fields, animation_ranges=ranges))
     with pytest.raises(ValueError, match="landmark_weights rows must sum to one"):
         FaceModel(**dict(fields, landmark_weights=model.landmark_weights * 2.0))
+    ranges = model.animation_ranges.clone()
+    ranges[3] = torch.tensor([0.2, 1.0])  # (0 outside: the fit's start and the prior's centre; the tracking drifted)
+    with pytest.raises(ValueError, match=r"must hold 0 .* got \[0.2, 1\] for 'AUV3 Brow lowerer'"):
+        FaceModel(**dict(fields, animation_ranges=ranges))
     assert FaceModel(**fields).to(torch.float64).num_animation == 11  # the model itself passes, in any dtype
 
 
@@ -330,3 +335,36 @@ def test_the_padded_basis_is_kept_while_the_basis_is_unchanged():
     for _ in range(fm._PADDED_KEPT + 3):  # (at most _PADDED_KEPT bases kept)
         deform_vertices(mean, su, torch.randn(5, 37, 3, generator=g), None, x)
     assert len(fm._PADDED) == fm._PADDED_KEPT
+
+
+def test_construction_refuses_landmarks_off_the_surface(model):
+    """Landmark weights over vertices that no triangle holds (``[0, 60, 100]``, across the face; two vertices of no
+    edge) put the landmark off the surface, though each row sums to one: they were taken. So was a landmark on a
+    vertex that no face uses. Both refused, naming the landmark; a triangle's three, an edge's two (the third
+    weight 0) and one vertex (padded at weight 0) pass."""
+    fields = {f: getattr(model, f) for f in model.__dataclass_fields__}
+    name = model.landmark_names[5]
+    for vertices, weights, said in (
+        ([0, 60, 100], [0.4, 0.3, 0.3], r"vertices \[0, 60, 100\], which no triangle of faces holds"),
+        ([0, 60, 0], [0.5, 0.5, 0.0], r"vertices \[0, 60\], which no triangle"),
+    ):
+        lv, lw = model.landmark_vertices.clone(), model.landmark_weights.clone()
+        lv[5], lw[5] = torch.tensor(vertices), torch.tensor(weights)
+        with pytest.raises(ValueError, match=rf"landmark 5 \({re.escape(repr(name))}\) has non-zero weights on {said}"):
+            FaceModel(**dict(fields, landmark_vertices=lv, landmark_weights=lw))
+    a, b, c = model.faces[7].tolist()
+    for vertices, weights in (([a, b, c], [0.2, 0.3, 0.5]), ([c, a, c], [0.5, 0.5, 0.0]), ([b, b, b], [1.0, 0, 0])):
+        lv, lw = model.landmark_vertices.clone(), model.landmark_weights.clone()
+        lv[5], lw[5] = torch.tensor(vertices), torch.tensor(weights)
+        FaceModel(**dict(fields, landmark_vertices=lv, landmark_weights=lw))
+    # a vertex no face uses: CANDIDE-3's faces without those of vertex 3
+    faces = model.faces[~(model.faces == 3).any(dim=1)]
+    mask = torch.zeros_like(model.surface_vertex_mask)
+    mask[faces.flatten()] = True
+    lv, lw = model.landmark_vertices.clone(), model.landmark_weights.clone()
+    lv[2], lw[2] = torch.tensor([3, 3, 3]), torch.tensor([1.0, 0.0, 0.0])
+    base = dict(fields, faces=faces, surface_vertex_mask=mask)
+    with pytest.raises(ValueError, match=r"landmark 2 \(.*\) lies on vertex 3 \(weight 1\), which no face uses"):
+        FaceModel(**dict(base, landmark_vertices=lv, landmark_weights=lw))
+    lv[2], lw[2] = torch.tensor([0, 3, 0]), torch.tensor([1.0, 0.0, 0.0])  # (at weight 0: not used)
+    FaceModel(**dict(base, landmark_vertices=lv, landmark_weights=lw))

@@ -56,6 +56,32 @@ def test_trimesh_input_with_bases():
     assert (outward_flux(model.mean, model.faces) > 0).all()
 
 
+def test_animation_ranges_that_exclude_zero_are_refused():
+    """A unit whose range excludes 0 (``[0.2, 1]``) was taken: the first frame's fit starts it at 0 and its prior is
+    centred there, outside its range, and the tracking drifted. Refused, naming the unit and how to re-centre; a
+    range with 0 at an end, or only 0, is taken."""
+    mesh = trimesh.Trimesh(TET_V, TET_F, process=False)
+    blend = np.zeros((2, 5, 3))
+    blend[:, 3] = [0.0, 0.0, 1.0]
+    for ranges, unit in (([[0.2, 1.0], [0.2, 1.0]], "'up'"), ([[0.0, 1.0], [-1.0, -0.5]], "'down'")):
+        with pytest.raises(ValueError, match=rf"animation_ranges must hold 0 .* got \[-?[\d.]+, -?[\d.]+\] for {unit}"):
+            load_mesh_model(mesh, blendshapes=blend, blendshape_names=["up", "down"], animation_ranges=ranges)
+    model = load_mesh_model(mesh, blendshapes=blend, animation_ranges=[[0.0, 0.0], [-1.0, 0.0]])
+    assert model.animation_ranges.tolist() == [[0.0, 0.0], [-1.0, 0.0]]
+
+
+def test_landmarks_off_the_surface_are_refused():
+    """A landmark on the tetrahedron's unused vertex 4, or weighted over two vertices of no edge: refused (they were
+    taken, though the landmark is on no triangle); on an edge's two vertices it loads."""
+    mesh = trimesh.Trimesh(np.r_[TET_V, [[2.0, 2, 2]]], np.r_[TET_F, [[1, 2, 5]]], process=False)
+    with pytest.raises(ValueError, match=r"landmark 1 \('tip'\) lies on vertex 4 \(weight 1\), which no face uses"):
+        load_mesh_model(mesh, landmark_vertices=[3, 4], landmark_names=["a", "tip"])
+    with pytest.raises(ValueError, match=r"landmark 0 \('landmark0'\) has non-zero weights on vertices \[3, 5\]"):
+        load_mesh_model(mesh, landmark_vertices=[[3, 5]], landmark_weights=[[0.5, 0.5]])
+    model = load_mesh_model(mesh, landmark_vertices=[[2, 5]], landmark_weights=[[0.5, 0.5]])
+    assert model.landmark_vertices.tolist() == [[2, 5, 2]]
+
+
 def test_arrays_given_as_views_with_negative_strides():
     """NumPy arguments that are views with a negative stride (``a[::-1]``, ``faces[:, ::-1]`` to turn a winding)
     load as their copies do: ``animation_ranges`` was torch's "At least one stride in the given numpy array is
@@ -302,6 +328,42 @@ def test_a_face_of_implausible_size_warns_about_scale_to_mm():
         warnings.simplefilter("error")
         load_mesh_model(trimesh.Trimesh(mean / 1000.0, faces, process=False), scale_to_mm=1000.0)
         load_mesh_model(trimesh.Trimesh(mean, faces, process=False))
+
+
+def test_blendshapes_in_another_unit_than_the_mesh_warn(tmp_path):
+    """Blendshapes in metres on a mesh in millimetres (a jaw that barely moves) were taken without a word, as were
+    blendshapes in millimetres on a mesh in metres; the span warning looks at the mesh alone. Both warn, naming the
+    unit that moves most; CANDIDE-3's own, in either unit with its mesh, do not; nor does a file's model saved or
+    loaded, unless its blendshapes are so."""
+    import dataclasses
+    import warnings
+
+    from torchface.model import load_candide3, load_face_model, save_face_model
+
+    c = load_candide3(dtype=torch.float64)
+    mean, faces, units = c.mean.numpy(), c.faces.numpy(), c.animation_units.numpy()
+    ranges = c.animation_ranges.numpy()
+    mesh = trimesh.Trimesh(mean, faces, process=False)
+    said = (r"the blendshapes move the mesh by at most 0.0429 mesh units within their animation_ranges "
+            r"\('AUV11 Jaw drop'\), 0.000218 of the mesh's span of 197 mesh units; .* are the blendshapes in")
+    with pytest.warns(UserWarning, match=said):
+        load_mesh_model(mesh, blendshapes=units / 1000.0, blendshape_names=c.animation_names, animation_ranges=ranges)
+    with pytest.warns(UserWarning, match=r"at most 42.9 mesh units .* 218 of the mesh's span of 0.197 mesh units"):
+        load_mesh_model(trimesh.Trimesh(mean / 1000.0, faces, process=False), blendshapes=units,
+                        blendshape_names=c.animation_names, animation_ranges=ranges, scale_to_mm=1000.0)  # fmt: skip
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        load_mesh_model(mesh, blendshapes=units, animation_ranges=ranges)
+        load_mesh_model(trimesh.Trimesh(mean / 1000.0, faces, process=False), blendshapes=units / 1000.0,
+                        animation_ranges=ranges, scale_to_mm=1000.0)  # fmt: skip
+        load_mesh_model(mesh, blendshapes=np.zeros_like(units))  # (nothing moves: nothing to judge)
+        save_face_model(c, tmp_path / "c.npz")
+        load_face_model(tmp_path / "c.npz")
+    small = dataclasses.replace(c, animation_units=c.animation_units / 1000.0)
+    with pytest.warns(UserWarning, match=r"at most 0.0429 mm .* span of 197 mm"):
+        save_face_model(small, tmp_path / "s.npz")
+    with pytest.warns(UserWarning, match=r"at most 0.0429 mm"):
+        load_face_model(tmp_path / "s.npz")
 
 
 def test_repeated_blendshape_names_are_refused_at_load():

@@ -141,20 +141,49 @@ def test_entries_of_other_names_are_left_unread(tmp_path):
 
 def test_the_checks_of_load_mesh_model_are_made(tmp_path):
     """A model wound inward is refused as load_mesh_model refuses it; a blendshape that is a whole mesh too; 68
-    landmarks mirrored warn as there."""
+    landmarks mirrored warn as there. (The files are made by rewriting a good one's entries: save_face_model now
+    refuses to write such models, test_save_refuses_a_model_that_load_would_refuse; they were saved with it.)"""
     c = load_candide3()
     p = tmp_path / "m.npz"
-    save_face_model(replace(c, faces=c.faces.flip(1)), p)
+    save_face_model(c, p)
+    _archive(p, faces=c.faces.flip(1).numpy())
     with pytest.raises(InputError, match="faces away from the viewer"):
         load_face_model(p)
     whole = c.animation_units.clone()
     whole[0] = c.mean
-    save_face_model(replace(c, animation_units=whole), p)
+    save_face_model(c, p)
+    _archive(p, animation_units=whole.numpy())
     with pytest.raises(InputError, match="is a whole mesh, not a displacement"):
         load_face_model(p)
     save_face_model(replace(c, mean=c.mean * torch.tensor([-1.0, 1.0, 1.0]), faces=c.faces.flip(1)), p)
     with pytest.warns(UserWarning, match="not laid out as the iBUG-68 points"):
         load_face_model(p)
+
+
+def test_save_refuses_a_model_that_load_would_refuse(tmp_path):
+    """A model wound inward, or with a blendshape that is a whole mesh, is refused by save_face_model with
+    load_face_model's reason, and nothing is written (it was written, and refused only by ``torchface track
+    --model``); one whose landmarks are mirrored warns when saved, as when loaded, and is written."""
+    c = load_candide3()
+    p = tmp_path / "m.npz"
+    with pytest.raises(ValueError, match=r"'CANDIDE-3 v3.1.6' is not saved: load_face_model would refuse it: .*faces "
+                                         "away from the viewer"):  # fmt: skip
+        save_face_model(replace(c, faces=c.faces.flip(1)), p)
+    whole = c.animation_units.clone()
+    whole[2] = c.mean
+    with pytest.raises(ValueError, match=r"animation_units\[2\] .* is a whole mesh, not a displacement"):
+        save_face_model(replace(c, animation_units=whole), p)
+    assert not list(tmp_path.iterdir())
+    save_face_model(c, p)  # an earlier file is kept
+    before = p.read_bytes()
+    with pytest.raises(ValueError, match="faces away from the viewer"):
+        save_face_model(replace(c, faces=c.faces.flip(1)), p)
+    assert p.read_bytes() == before and [q.name for q in tmp_path.iterdir()] == ["m.npz"]
+    with pytest.warns(UserWarning, match="not laid out as the iBUG-68 points") as caught:
+        save_face_model(replace(c, mean=c.mean * torch.tensor([-1.0, 1.0, 1.0]), faces=c.faces.flip(1)), p)
+    assert caught[0].filename == __file__  # (the warning names the caller)
+    with pytest.warns(UserWarning, match=r"the mesh spans 0.\d+ mm in the model; .* is the model in millimetres"):
+        save_face_model(replace(c, mean=c.mean / 1000), p)
 
 
 def test_save_refuses_what_it_cannot_keep(tmp_path):

@@ -16,6 +16,7 @@ from collections import Counter, OrderedDict
 from dataclasses import dataclass, fields
 from typing import Any
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -221,6 +222,78 @@ def check_landmark_weights(weights: Tensor, names: tuple[str, ...] | None = None
                          f"{float(sums.max()):.6g}])")  # fmt: skip
 
 
+def check_landmarks_on_surface(
+    faces: Tensor,
+    landmark_vertices: Tensor,
+    landmark_weights: Tensor,
+    surface_vertex_mask: Tensor,
+    names: tuple[str, ...] | None = None,
+) -> None:
+    """Refuse ``(K, J)`` landmarks that do not lie on the surface of the ``(F, 3)`` ``faces``: one with a non-zero
+    weight on a vertex no face uses (``surface_vertex_mask`` ``(V,)`` False: it moves with no triangle, and the
+    tracker's view of the surface never holds it), or one whose vertices of non-zero weight, two or three of them,
+    are not those of one triangle (an edge's two, a triangle's three): its weights are then no barycentric
+    coordinates, and the landmark lies off the surface (``[0, 60, 100]`` of CANDIDE-3, across the face, was taken).
+    ``names`` (``K``) name the landmark in the message.
+
+    Example:
+        >>> faces = torch.tensor([[0, 1, 2], [1, 3, 2]])
+        >>> mask = torch.tensor([True, True, True, True, False])
+        >>> check_landmarks_on_surface(faces, torch.tensor([[1, 2, 3]]), torch.full((1, 3), 1 / 3), mask)
+        >>> check_landmarks_on_surface(faces, torch.tensor([[0, 3, 0]]), torch.tensor([[0.5, 0.5, 0.0]]), mask)
+        Traceback (most recent call last):
+            ...
+        ValueError: landmark 0 has non-zero weights on vertices [0, 3], which no triangle of faces holds (landmark weights are barycentric in a triangle: a landmark on the surface); give the vertices of the triangle it lies in (or of the edge it lies on)
+    """
+    if not landmark_vertices.numel():
+        return
+
+    def named(k: int) -> str:
+        return f"landmark {k}" + (f" ({names[k]!r})" if names is not None and k < len(names) else "")
+
+    idx = landmark_vertices.detach().cpu().numpy()
+    on = (landmark_weights.detach() != 0).cpu().numpy()
+    unused = on & ~surface_vertex_mask.detach().cpu().numpy()[idx]
+    if unused.any():
+        k, j = (int(i) for i in np.argwhere(unused)[0])
+        raise ValueError(
+            f"{named(k)} lies on vertex {int(idx[k, j])} (weight {float(landmark_weights[k, j]):.6g}), which no "
+            f"face uses ({int(unused.any(axis=1).sum())} landmarks do): it is not on the surface; put it on a "
+            "vertex of the mesh's triangles"
+        )
+    # each landmark's distinct vertices of non-zero weight, sorted, padded with -1: (K, 3)
+    sets = np.sort(np.where(on, idx, -1), axis=1)
+    sets[:, 1:][sets[:, 1:] == sets[:, :-1]] = -1
+    sets = np.sort(sets, axis=1)
+    count = (sets >= 0).sum(axis=1)
+    several = np.flatnonzero(count > 1)
+    if not several.size:
+        return
+    tri = np.sort(faces.detach().cpu().numpy(), axis=1)
+    num_v = int(surface_vertex_mask.shape[0])
+
+    wide = np.int64 if num_v < 2**21 else object  # (a triangle's key, num_v**3, within int64; else Python ints)
+
+    def key(a: np.ndarray, b: np.ndarray, c: np.ndarray | None = None) -> np.ndarray:
+        out = a.astype(wide) * num_v + b.astype(wide)
+        return out if c is None else out * num_v + c.astype(wide)
+
+    edges = np.concatenate([key(tri[:, 0], tri[:, 1]), key(tri[:, 1], tri[:, 2]), key(tri[:, 0], tri[:, 2])])
+    held = np.zeros(sets.shape[0], dtype=bool)
+    two, three = several[count[several] == 2], several[count[several] == 3]
+    held[two] = np.isin(key(sets[two, 1], sets[two, 2]), edges)
+    held[three] = np.isin(key(sets[three, 0], sets[three, 1], sets[three, 2]), key(tri[:, 0], tri[:, 1], tri[:, 2]))
+    off = several[~held[several]]
+    if off.size:
+        k = int(off[0])
+        raise ValueError(
+            f"{named(k)} has non-zero weights on vertices {sets[k][sets[k] >= 0].tolist()}, which no triangle of "
+            f"faces holds{f' ({off.size} landmarks do)' if off.size > 1 else ''} (landmark weights are barycentric "
+            "in a triangle: a landmark on the surface); give the vertices of the triangle it lies in (or of the edge "
+            "it lies on)"
+        )
+
+
 def interpolate_landmarks(verts: Tensor, landmark_vertices: Tensor, landmark_weights: Tensor) -> Tensor:
     """Landmarks as weighted vertex combinations, ``l_k = sum_j w[k, j] * verts[idx[k, j]]``.
 
@@ -257,7 +330,7 @@ class FaceModel:
         shape_names: ``S`` names.
         animation_units: ``(A, V, 3)`` displacement (mm) per unit animation coefficient.
         animation_names: ``A`` names.
-        animation_ranges: ``(A, 2)`` plausible ``[lo, hi]`` range of each animation coefficient.
+        animation_ranges: ``(A, 2)`` plausible ``[lo, hi]`` range of each animation coefficient, holding 0.
         landmark_vertices: ``(K, 3)`` int64 vertex indices of each landmark.
         landmark_weights: ``(K, 3)`` non-negative weights (within 1e-2), ``l_k = sum_j w[k, j] verts[idx[k, j]]``;
             rows sum to one (within 1e-2).
@@ -267,10 +340,13 @@ class FaceModel:
         surface_vertex_mask: ``(V,)`` bool, ``True`` for exactly the vertices used by a face.
 
     Construction checks the shapes, dtypes and devices above, that the shape, animation and FACS names are
-    distinct within each tuple, that the floating tensors are finite, that each animation range has ``lo <= hi``
-    and that the landmark weights are non-negative with rows that sum to one (within 1e-2:
-    :func:`check_landmark_weights`), that the indices index vertices and that ``surface_vertex_mask`` marks those
-    of the faces, and raises ``ValueError`` (``TypeError`` for a field of the wrong type) otherwise.
+    distinct within each tuple, that the floating tensors are finite, that each animation range has
+    ``lo <= 0 <= hi`` (0, the mean mesh, is where the tracker starts each unit and centres its prior), that the
+    landmark weights are non-negative with rows that sum to one (within 1e-2: :func:`check_landmark_weights`), that
+    the indices index vertices, that ``surface_vertex_mask`` marks those of the faces and that each landmark lies on
+    the surface (its vertices of non-zero weight used by a face, and two or three of them an edge's or a
+    triangle's: :func:`check_landmarks_on_surface`), and raises ``ValueError`` (``TypeError`` for a field of the
+    wrong type) otherwise.
 
     Example:
         >>> from torchface.model import load_candide3
@@ -352,6 +428,18 @@ class FaceModel:
         if reversed_ranges:
             names = [self.animation_names[a] for a in reversed_ranges]
             raise ValueError(f"animation_ranges must be [lo, hi] with lo <= hi, reversed for {names}")
+        # (a range that excludes 0 was taken: the first frame's fit starts each unit at 0 and the expression prior is
+        # centred there, outside the range, and the tracking drifted)
+        without_zero = ((self.animation_ranges[:, 0] > 0) | (self.animation_ranges[:, 1] < 0)).nonzero().flatten()
+        if without_zero.numel():
+            a = int(without_zero[0])
+            lo, hi = (float(v) for v in self.animation_ranges[a])
+            raise ValueError(
+                f"animation_ranges must hold 0 (lo <= 0 <= hi: a coefficient of 0 is the mean mesh, where the first "
+                f"frame's fit starts and the expression prior is centred), got [{lo:g}, {hi:g}] for "
+                f"{self.animation_names[a]!r} ({without_zero.numel()} of the {self.num_animation} units): make the "
+                "mean a face inside the ranges (add lo times each unit to it and subtract lo from its range)"
+            )
         check_landmark_weights(self.landmark_weights, self.landmark_names)
         if self.faces.numel() and (int(self.faces.min()) < 0 or int(self.faces.max()) >= num_v):
             got = (int(self.faces.min()), int(self.faces.max()))
@@ -373,6 +461,8 @@ class FaceModel:
             int(self.landmark_vertices.min()) < 0 or int(self.landmark_vertices.max()) >= num_v
         ):
             raise ValueError(f"landmark_vertices index vertices outside [0, {num_v})")
+        check_landmarks_on_surface(self.faces, self.landmark_vertices, self.landmark_weights, self.surface_vertex_mask,
+                                   self.landmark_names)  # fmt: skip
 
     # ----------------------------------------------------------------------------------------- sizes
     @property

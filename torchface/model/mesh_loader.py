@@ -49,6 +49,13 @@ ICT_AREAS: dict[str, tuple[tuple[int, int], ...]] = {
 #: warning.
 _FACE_SPAN_MM = (50.0, 2000.0)
 
+#: The range of the largest displacement the blendshapes make within their animation ranges, relative to the span of
+#: the mesh's used vertices, that :func:`load_mesh_model` takes without a warning: CANDIDE-3's (every animation set)
+#: is 0.22-0.32, the ICT Face Model's 0.12 (whole head) to 0.21 (``area="narrow_eyes"``). Blendshapes in metres on a
+#: mesh in millimetres come out 1000 times too small (about 2e-4), in millimetres on a mesh in metres 1000 times too
+#: large.
+_BLENDSHAPE_REACH = (2e-3, 5.0)
+
 #: FACS action units commonly associated with the ARKit-style blendshapes of the ICT model
 #: (``_L`` / ``_R`` suffixes dropped). Eye-gaze shapes map to the FACS eye-position codes AU61-AU64.
 ARKIT_TO_FACS: dict[str, tuple[str, ...]] = {
@@ -125,6 +132,34 @@ def _check_displacements(basis: np.ndarray, names: tuple[str, ...], vertices: np
         raise ValueError(
             f"{what}[{i}] ({names[i]!r}) is a whole mesh, not a displacement: it is {off[i]:.3g} (RMS, mesh units) "
             f"from the mesh and {size[i]:.3g} from zero; pass each target minus the neutral mesh"
+        )
+
+
+def _check_blendshape_size(
+    basis: np.ndarray, ranges: np.ndarray, names: tuple[str, ...], vertices: np.ndarray, faces: np.ndarray, unit: str
+) -> None:
+    """Warn when the ``(A, V, 3)`` blendshapes, within their ``(A, 2)`` ranges, move the ``(V, 3)`` mesh by an
+    implausible amount for its size (``unit``: what its numbers are, in the message): when the largest displacement
+    of any vertex at either end of any unit's range is outside :data:`_BLENDSHAPE_REACH` times the span of the used
+    vertices (the largest side of their bounding box). Blendshapes in another unit than the mesh are taken, scaled by
+    ``scale_to_mm`` as the mesh is: a jaw that barely moves, or one that leaves the face."""
+    if basis.shape[0] == 0:
+        return
+    used = vertices[np.unique(faces)]
+    span = float((used.max(axis=0) - used.min(axis=0)).max())
+    reach = np.sqrt((basis**2).sum(axis=2)).max(axis=1) * np.abs(ranges).max(axis=1)  # (A,)
+    a = int(reach.argmax())
+    if not (span > 0 and reach[a] > 0):
+        return  # (nothing moves, or a mesh of no size: nothing to judge by)
+    ratio = float(reach[a]) / span
+    if not _BLENDSHAPE_REACH[0] <= ratio <= _BLENDSHAPE_REACH[1]:
+        warnings.warn(
+            f"the blendshapes move the mesh by at most {float(reach[a]):.3g} {unit} within their animation_ranges "
+            f"({names[a]!r}), {ratio:.3g} of the mesh's span of {span:.3g} {unit}; a face's expressions move it by "
+            "about a tenth of its size (CANDIDE-3's jaw drop 0.22 of it): are the blendshapes in the mesh's unit "
+            "(scale them to it: blendshapes in metres on a mesh in millimetres make a jaw that barely moves)?",
+            UserWarning,
+            stacklevel=3,
         )
 
 
@@ -306,7 +341,8 @@ def load_mesh_model(
             1e-2 below zero, a rounding error, is made zero: the rule of
             :func:`~torchface.model.face_model.check_landmark_weights`), or ``None``: each landmark on its vertex.
         animation_ranges: ``(A, 2)`` ``[lo, hi]`` per blendshape (default ``[0, 1]``, the blendshape-weight
-            convention).
+            convention), each holding 0 (the neutral mesh: the tracker starts each unit there and centres its
+            prior there).
         facs_links: blendshape name -> the FACS AUs it is linked to, a tuple of names or one name (``"AU26"``
             is one AU, not four; blendshapes not listed link to nothing; a name that is no blendshape's is refused).
         scale_to_mm: millimetres per mesh unit (1000 for a mesh in metres, 10 in centimetres). A model whose used
@@ -326,19 +362,22 @@ def load_mesh_model(
             one string (a sequence of names is expected), ``facs_links`` is not a dict or a value of it is neither
             an AU name nor a collection of them, ``scale_to_mm`` is not a number, or ``landmark_vertices`` are not
             integers.
-        ValueError: a vertex of the mesh is not finite (NaN or inf; a basis's are refused as :class:`FaceModel`
-            refuses them), a basis, name list, landmark index or range has the wrong size, a basis entry is a whole
-            mesh (close to the mesh itself) rather than a displacement, ``landmark_vertices`` is not 1-D (2-D with
-            ``landmark_weights`` of its shape, at most 3 columns) or holds fractions, ``landmark_weights`` are not
-            finite, one is negative or a row does not sum to one (each within 1e-2), the file holds no triangles,
-            they are not wound consistently (or a triangle is given in both windings, a double-sided mesh) or the
-            frontal view sees mostly their back, ``to_head_frame`` is not orthogonal, ``scale_to_mm`` is not
+        ValueError: a vertex of the mesh is not finite (NaN or inf; a basis's are refused as :class:`FaceModel` refuses
+            them), a basis, name list, landmark index or range has the wrong size, a basis entry is a whole mesh (close
+            to the mesh itself) rather than a displacement, a range does not hold 0, ``landmark_vertices`` is not 1-D
+            (2-D with ``landmark_weights`` of its shape, at most 3 columns) or holds fractions, ``landmark_weights`` are
+            not finite, one is negative or a row does not sum to one (each within 1e-2), a landmark is on a vertex no
+            triangle uses or weighted over vertices that are not one triangle's (or edge's), the file holds no
+            triangles, they are not wound consistently (or a triangle is given in both windings, a double-sided mesh) or
+            the frontal view sees mostly their back, ``to_head_frame`` is not orthogonal, ``scale_to_mm`` is not
             positive and finite, a ``facs_links`` name is not a blendshape name, or ``device`` is not a device this
             machine has (the message lists those it has).
 
     Warns:
-        UserWarning: the mesh spans less than 50 mm or more than 2 m (``scale_to_mm``), or 68 landmarks are not laid
-            out as the iBUG-68 points (mirrored or in another order: a face detector's landmarks are those).
+        UserWarning: the mesh spans less than 50 mm or more than 2 m (``scale_to_mm``), the blendshapes move it, at
+            most, by less than 0.002 or more than 5 times its span within their ranges (blendshapes in another unit
+            than the mesh: CANDIDE-3's and the ICT Face Model's move it by 0.12-0.32 times), or 68 landmarks are not
+            laid out as the iBUG-68 points (mirrored or in another order: a face detector's landmarks are those).
 
     Example:
         >>> import trimesh
@@ -457,6 +496,7 @@ def load_mesh_model(
         ranges = np.asarray(animation_ranges, dtype=np.float64)
         if ranges.shape != (anim.shape[0], 2):
             raise ValueError(f"animation_ranges must have shape ({anim.shape[0]}, 2), got {ranges.shape}")
+    _check_blendshape_size(anim, ranges, anim_names, vertices, faces, "mesh units")
     if facs_links is not None and not isinstance(facs_links, Mapping):
         raise TypeError(f"facs_links must be a dict of blendshape name -> AU names, got {type(facs_links).__name__}")
     unknown = sorted(str(n) for n in set(facs_links or {}) - set(anim_names))

@@ -36,7 +36,7 @@ import torch
 from torchface._device import check_device
 from torchface.io.errors import InputError, OutputError
 from torchface.model.face_model import FaceModel
-from torchface.model.mesh_loader import _check_displacements, _check_surface
+from torchface.model.mesh_loader import _check_blendshape_size, _check_displacements, _check_surface
 
 __all__ = ["FORMAT", "FORMAT_VERSION", "face_model_digest", "load_face_model", "save_face_model"]
 
@@ -72,7 +72,11 @@ def _array(value: torch.Tensor) -> np.ndarray:
 def save_face_model(model: FaceModel, path: str | os.PathLike[str]) -> None:
     """Write ``model`` to ``path`` (the file format of this module; the name is used as given, ``.npz`` is not added).
 
-    The file is written under a temporary name beside ``path`` and renamed when complete.
+    The model is first checked as :func:`load_face_model` checks the file's (no basis entry a whole mesh, the
+    triangles wound consistently and outward with the face toward ``-z``; warnings for a span outside 50 mm - 2 m,
+    blendshapes of an implausible size for it and 68 landmarks not laid out as the iBUG-68 points), so a model it
+    would refuse is not written (it was, and was refused only by ``torchface track --model``). The file is written
+    under a temporary name beside ``path`` and renamed when complete.
 
     Args:
         model: the :class:`FaceModel`, of any dtype and device.
@@ -80,8 +84,12 @@ def save_face_model(model: FaceModel, path: str | os.PathLike[str]) -> None:
 
     Raises:
         TypeError: ``model`` is not a :class:`FaceModel`.
-        ValueError: a name ends in a NUL character (numpy's text arrays drop it: it would not read back).
+        ValueError: a name ends in a NUL character (numpy's text arrays drop it: it would not read back), or the
+            model fails a check above (:func:`load_face_model` would refuse the file); nothing is written.
         OutputError: the file cannot be written.
+
+    Warns:
+        UserWarning: as :func:`load_face_model` warns when the file is read.
 
     Example:
         >>> import tempfile
@@ -106,6 +114,20 @@ def save_face_model(model: FaceModel, path: str | os.PathLike[str]) -> None:
                 raise ValueError(f"{f.name}: {bad[0]!r} ends in a NUL character, which the file cannot keep (numpy's "
                                  "text arrays drop it)")  # fmt: skip
             arrays[f.name] = np.array(value) if f.name == "name" else np.array(list(value), dtype=np.str_)
+    # load_face_model's checks, on the values the file will hold, before anything is written (a model wound inward
+    # was written, and refused only when torchface track read it)
+    mean = np.asarray(arrays["mean"], dtype=np.float64)
+    try:
+        for key, named in (("animation_units", "animation_names"), ("shape_units", "shape_names")):
+            _check_displacements(np.asarray(arrays[key], dtype=np.float64), getattr(model, named), mean, key)
+        _check_blendshape_size(np.asarray(arrays["animation_units"], dtype=np.float64),
+                               np.asarray(arrays["animation_ranges"], dtype=np.float64), model.animation_names, mean,
+                               arrays["faces"].astype(np.int64), "mm")  # fmt: skip
+        _check_surface(mean, arrays["faces"].astype(np.int64), arrays["landmark_vertices"].astype(np.int64),
+                       np.asarray(arrays["landmark_weights"], dtype=np.float64), model.name, "in the model",
+                       "is the model in millimetres (torchface.conventions)?")  # fmt: skip
+    except ValueError as exc:
+        raise ValueError(f"the model {model.name!r} is not saved: load_face_model would refuse it: {exc}") from None
     target = Path(path)
     tmp = target.with_name(target.name + ".partial")
     try:
@@ -175,8 +197,8 @@ def load_face_model(
 
     The model is checked as :func:`~torchface.model.load_mesh_model` checks one: :class:`FaceModel`'s own checks
     (shapes, finite values, landmark weights, indices), no basis entry a whole mesh rather than a displacement, the
-    triangles wound consistently and outward with the face toward ``-z``, and (warnings) a span of 50 mm - 2 m and,
-    for 68 landmarks, the iBUG-68 layout.
+    triangles wound consistently and outward with the face toward ``-z``, and (warnings) a span of 50 mm - 2 m,
+    blendshapes of a plausible size for it and, for 68 landmarks, the iBUG-68 layout.
 
     Args:
         path: the file.
@@ -194,8 +216,8 @@ def load_face_model(
             version, is damaged (an entry missing or of the wrong kind), or its model fails a check above.
 
     Warns:
-        UserWarning: as :func:`~torchface.model.load_mesh_model`: a span outside 50 mm - 2 m, or 68 landmarks not laid
-            out as the iBUG-68 points.
+        UserWarning: as :func:`~torchface.model.load_mesh_model`: a span outside 50 mm - 2 m, blendshapes that move
+            the mesh implausibly little or much for its span, or 68 landmarks not laid out as the iBUG-68 points.
     """
     if not (isinstance(dtype, torch.dtype) and dtype.is_floating_point):
         raise TypeError(f"dtype must be a floating torch.dtype, got {dtype}")
@@ -212,6 +234,9 @@ def load_face_model(
         mean = np.asarray(arrays["mean"], dtype=np.float64)
         for key, named in (("animation_units", "animation_names"), ("shape_units", "shape_names")):
             _check_displacements(np.asarray(arrays[key], dtype=np.float64), names[named], mean, key)
+        _check_blendshape_size(np.asarray(arrays["animation_units"], dtype=np.float64),
+                               np.asarray(arrays["animation_ranges"], dtype=np.float64), names["animation_names"],
+                               mean, arrays["faces"].astype(np.int64), "mm")  # fmt: skip
         _check_surface(mean, arrays["faces"].astype(np.int64), arrays["landmark_vertices"].astype(np.int64),
                        np.asarray(arrays["landmark_weights"], dtype=np.float64), f"{p} ({model.name})",
                        "in the model file", "was the model saved in millimetres (torchface.conventions)?")  # fmt: skip
