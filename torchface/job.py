@@ -377,8 +377,8 @@ class JobConfig:
             detector gives the 68 iBUG points: with ``detector`` a model of another landmark count is refused (give
             landmarks files of its own points).
         smoothing: smooth the pose over time (``torchface track --smooth``: :class:`~torchface.tracker.SmoothingConfig`,
-            its ``rotation`` and ``translation`` filters; an ``expression`` filter is refused: the job smooths the
-            pose only), or None (the default: off, the outputs as without it). The CSV keeps its raw columns, which a
+            its ``rotation`` and ``translation`` filters, one of them at least; an ``expression`` filter is refused:
+            the job smooths the pose only), or None (the default: off, the outputs as without it). The CSV keeps its raw columns, which a
             resumed run replays into the tracker, and appends :data:`~torchface.io.table.SMOOTH_COLUMNS`; the
             overlay and the meshes show the smoothed pose, the normalised face is resampled at the raw one. The
             filter runs on each row as written (replayed rows too: a resumed video's filter goes on from the state
@@ -448,6 +448,10 @@ class JobConfig:
         if self.smoothing is not None and self.smoothing.expression is not None:
             raise ValueError("smoothing.expression must be None: torchface track smooths the pose only (the rows' "
                              "expression stays raw; ResultSmoother smooths it in Python)")  # fmt: skip
+        if self.smoothing is not None and self.smoothing.rotation is None and self.smoothing.translation is None:
+            # (the smooth_* columns were written, equal to the raw ones, and the sidecar said the pose was smoothed)
+            raise ValueError("smoothing smooths nothing with neither a rotation nor a translation filter: give one "
+                             "(SmoothingConfig() has both), or smoothing=None for no smooth_* columns")  # fmt: skip
         if self.model is not None and not isinstance(self.model, (str, os.PathLike)):
             raise TypeError(f"model must be a path to a face model file or None, got {type(self.model).__name__}")
         if isinstance(self.landmarks, (str, bytes, os.PathLike)):  # one path: its characters were taken as files

@@ -510,6 +510,9 @@ def test_initialise_rejects_a_fit_of_another_batch_and_casts_its_dtype(model):
         (dict(photometric_weight=0.0), "photometric_weight"), (dict(iterations=()), "iterations"),
         (dict(shape_units=(1, 1)), "shape_units"), (dict(max_points=0), "max_points"),
         (dict(silhouette_margin=-1), "silhouette_margin"),
+        # (nothing refined: the online start re-anchored the stream at the pose it had)
+        (dict(iterations=(0, 0, 0)), r"iterations must give at least one level a positive count, got \(0, 0, 0\)"),
+        (dict(iterations=(0,)), "refine_first=None"),
         # (a NaN threshold passed "< 0", and no point passes it: the refinement had none)
         (dict(gradient_threshold=float("nan")), r"gradient_threshold must be a finite number >= 0, got nan"),
     ],

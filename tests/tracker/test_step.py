@@ -1275,6 +1275,10 @@ def test_expression_prior_weights_are_validated_and_sized_to_the_model():
     with pytest.raises(ValueError, match="expression_prior_weights"):
         TrackerConfig(expression_prior_weights=(1.0, float("nan")))
     assert TrackerConfig(expression_prior_weights=[1, 2]).expression_prior_weights == (1.0, 2.0)
+    # Without expression estimation no unit is solved for: the weights did nothing, unsaid
+    with pytest.raises(ValueError, match=r"expression_prior_weights weigh .* use_expression=False never solves for"):
+        TrackerConfig(use_expression=False, expression_prior_weights=(1.0,) * 7 + (10.0, 1.0, 1.0, 1.0))
+    assert not TrackerConfig(use_expression=False).use_expression
     from torchface.tracker.step import expression_prior
 
     like = torch.zeros(2, 3)

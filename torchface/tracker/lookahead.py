@@ -108,7 +108,8 @@ class LookaheadConfig:
             expression change the tracker measured there, ``key_expression`` of :func:`refine_first_fit`).
         photometric_weight: weight of the photometric term (squared landmark pixels per squared gray level);
             1e3 and 1e5 tracked worse than 1e4 on the James scan.
-        iterations: Levenberg-Marquardt iterations per pyramid level, coarsest first (levels 2, 1, 0). The
+        iterations: Levenberg-Marquardt iterations per pyramid level, coarsest first (levels 2, 1, 0); 0 skips a
+            level, and at least one level must have some (all 0 is refused: nothing would be refined). The
             online start and :func:`lookahead_fit` refine on at most the tracker's
             :attr:`~torchface.tracker.step.TrackerConfig.num_levels` levels, the finest ones
             (:func:`levels_of`): a tracker of fewer levels takes frames too small for this pyramid.
@@ -168,6 +169,10 @@ class LookaheadConfig:
             raise ValueError(f"min_keyframes must be 1 or 2 (one keyframe per side), got {self.min_keyframes!r}")
         if not self.iterations:
             raise ValueError(f"iterations must be a non-empty tuple of ints >= 0, got {self.iterations!r}")
+        if not any(self.iterations):  # (the start was re-anchored from the fit it had, refined by nothing)
+            raise ValueError(f"iterations must give at least one level a positive count, got {self.iterations!r}: "
+                             "with none the fit is not refined, and the online start re-anchors the stream at the "
+                             "pose it had (refine_first=None, torchface track --no-online-refine, turns it off)")  # fmt: skip
         units = self.shape_units
         if units is not None and len(set(units)) != len(units):
             raise ValueError(f"shape_units must be distinct non-negative indices, got {self.shape_units!r}")

@@ -243,7 +243,8 @@ class TrackerConfig:
         expression_prior_weights: one factor per animation unit (the model's order), each in [0, 1e6], on that
             precision and on ``refine_prior_precision``: units the image can hardly tell apart can be weighted so
             that their shared motion goes to one of them (CANDIDE-3's Lid tightener and Upper lid raiser move the
-            eyelid vertices nearly as Eyes closed does; docs/limitations.md). None: 1 for every unit.
+            eyelid vertices nearly as Eyes closed does; docs/limitations.md). None: 1 for every unit. Refused with
+            ``use_expression=False`` (no unit is solved for).
         expression_sparsity: ``delta`` > 0 turns that Gaussian prior into a reweighted L1 (Laplace) prior,
             which prefers few active units: before each pass, unit ``j``'s precision is multiplied by
             ``delta / max(|alpha_j - mu_j|, delta)`` (``alpha``: the estimate the pass starts from, i.e. the
@@ -432,6 +433,10 @@ class TrackerConfig:
             if not weights:
                 raise ValueError("expression_prior_weights must be one factor per animation unit or None, got ()")
             object.__setattr__(self, "expression_prior_weights", tuple(float(w) for w in weights))
+            if not self.use_expression:  # (the units are held: their prior, weighted or not, did nothing, unsaid)
+                raise ValueError("expression_prior_weights weigh the prior of animation units that "
+                                 "use_expression=False never solves for (they are held at the start's values): "
+                                 "leave them None, or estimate the expression (use_expression=True)")  # fmt: skip
         self._check_prior_strength()
         if len(self.iterations) != self.num_levels or any(i < 1 for i in self.iterations):
             raise ValueError(
