@@ -239,6 +239,7 @@ _FIELDS = {
     "focal": "focal", "smooth": "smoothing", "lookahead": "lookahead", "keep-expression": "keep_expression",
     "max-batch": "max_batch", "no-online-refine": "refine_first=None",
     "motion-prediction": "TrackerConfig.motion_prediction",
+    "restart-after-unmatched": "TemplateConfig.restart_after_unmatched",
 }  # fmt: skip
 _PYTHON_WORDS: tuple[tuple[re.Pattern[str], str], ...] = (
     (re.compile(r"\brun the same command with " + _OPTION.format("resume")),
@@ -377,15 +378,15 @@ class JobConfig:
             detector gives the 68 iBUG points: with ``detector`` a model of another landmark count is refused (give
             landmarks files of its own points).
         smoothing: smooth the pose over time (``torchface track --smooth``: :class:`~torchface.tracker.SmoothingConfig`,
-            its ``rotation`` and ``translation`` filters, one of them at least; an ``expression`` filter is refused:
-            the job smooths the pose only), or None (the default: off, the outputs as without it). The CSV keeps its raw columns, which a
-            resumed run replays into the tracker, and appends :data:`~torchface.io.table.SMOOTH_COLUMNS`; the
-            overlay and the meshes show the smoothed pose, the normalised face is resampled at the raw one. The
-            filter runs on each row as written (replayed rows too: a resumed video's filter goes on from the state
-            the interrupted run had), at the frames' times, and starts afresh at a video's first tracked row, after
-            an unsuccessful row, after the online start's re-anchoring frame and after a row where a re-detection
-            was due (``redetect_after``). The sidecar's ``config.smoothing`` and the resume record say it; a resume
-            with another setting is refused.
+            its ``rotation`` and ``translation`` filters, one of them at least; an ``expression`` filter is refused: the
+            job smooths the pose only), or None (the default: off, the outputs as without it). The CSV keeps its raw
+            columns, which a resumed run replays into the tracker, and appends
+            :data:`~torchface.io.table.SMOOTH_COLUMNS`; the overlay and the meshes show the smoothed pose, the
+            normalised face is resampled at the raw one. The filter runs on each row as written (replayed rows too: a
+            resumed video's filter goes on from the state the interrupted run had), at the frames' times, and starts
+            afresh at a video's first tracked row, after an unsuccessful row, after the online start's re-anchoring
+            frame and after a row where a re-detection was due (``redetect_after``). The sidecar's ``config.smoothing``
+            and the resume record say it; a resume with another setting is refused.
         keep_expression: write the normalised face with the expression kept (``torchface track --keep-expression``):
             resampled at the person's neutral animation coefficients, those the row's ``AUxx_r`` are measured from (the
             first frame's fit, the online start's re-estimate after its re-anchoring frame, a restart's:
@@ -1966,13 +1967,41 @@ def _setting_differences(then: object, now: object, at: str = "") -> list[str]:
     return [] if same else [at.rstrip(".")]
 
 
+#: The tracker settings (:class:`~torchface.tracker.TrackerConfig` fields, dotted) that ``torchface track`` sets with
+#: an option of its own: a settings difference names the option (:func:`_said_difference`), as ``--smooth``'s does.
+_TRACKER_OPTIONS = {"motion_prediction": "--motion-prediction",
+                    "template.restart_after_unmatched": "--restart-after-unmatched"}  # fmt: skip
+
+
+def _field_at(setting: object, dotted: str) -> object:
+    """The value of field ``dotted`` (:func:`_setting_differences`' names: ``template.lost_after``, ``iterations.1``)
+    in ``setting`` as a record holds it (:func:`_as_json`)."""
+    for key in dotted.split(".") if dotted else ():
+        setting = setting[int(key)] if isinstance(setting, list) else setting[key]  # type: ignore[index]
+    return setting
+
+
+def _said_value(value: object) -> str:
+    """A settings field's value in a message: as Python writes it, a nested setting as ``{...}``, long ones cut."""
+    said = "{...}" if isinstance(value, dict) else repr(value)
+    return said if len(said) <= 60 else said[:57] + "..."
+
+
 def _said_difference(name: str, then: object, now: object) -> str:
     """How a message says that setting ``name`` was ``then`` and is ``now``: the two values (None: ``default`` for
     ``--focal``, ``max(W, H)``; else ``none``), or for settings dataclasses (dicts; None where off) whether it was on,
-    or which of their fields differ."""
+    or which of their fields differ and their two values (the first four; a tracker field that ``torchface track``
+    sets with an option, :data:`_TRACKER_OPTIONS`, as that option)."""
     if isinstance(then, dict) and isinstance(now, dict):
         fields = sorted(_setting_differences(then, now))
-        return f"{name}: {', '.join(fields[:4])}{' and more' if len(fields) > 4 else ''}"
+        options = _TRACKER_OPTIONS if name in ("tracker settings", "tracker") else {}
+        said = [_said_difference(options[f], _field_at(then, f), _field_at(now, f)) for f in fields if f in options]
+        rest = [f for f in fields if f not in options]
+        if rest or not said:
+            values = [f"{f} {_said_value(_field_at(then, f))} then, {_said_value(_field_at(now, f))} now"
+                      for f in rest[:4]]  # fmt: skip
+            said.append(f"{name}: {'; '.join(values)}{' and more' if len(rest) > 4 else ''}")
+        return "; ".join(said)
     if isinstance(then, dict) or isinstance(now, dict):
         return f"{name} {'on' if then is not None else 'off'} then, {'on' if now is not None else 'off'} now"
     # (a setting left unset: "--focal None then" said Python's None where the user gave no --focal; a flag says on /

@@ -172,7 +172,8 @@ class LookaheadConfig:
         if not any(self.iterations):  # (the start was re-anchored from the fit it had, refined by nothing)
             raise ValueError(f"iterations must give at least one level a positive count, got {self.iterations!r}: "
                              "with none the fit is not refined, and the online start re-anchors the stream at the "
-                             "pose it had (refine_first=None, torchface track --no-online-refine, turns it off)")  # fmt: skip
+                             "pose it had (refine_first=None, torchface track --no-online-refine, turns it "
+                             "off)")  # fmt: skip
         units = self.shape_units
         if units is not None and len(set(units)) != len(units):
             raise ValueError(f"shape_units must be distinct non-negative indices, got {self.shape_units!r}")

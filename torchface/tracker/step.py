@@ -237,9 +237,9 @@ class TrackerConfig:
         visibility_interval: the fast solver re-rasterizes that z-buffer every this many frames and reuses
             the masks in between (back-facing points are still dropped every iteration).
         expression_prior_precision: precision (per squared unit) of the Gaussian prior on the animation units.
-            In [0, 1e6], and so is each unit's (times its ``expression_prior_weights`` factor; ``refine_prior_precision``
-            alike): at 1e6 a unit is held as firmly as ``use_expression=False`` holds it, and much stronger priors
-            stop the float32 solver following the pose (:data:`MAX_UNIT_PRECISION`).
+            In [0, 1e6], and so is each unit's (times its ``expression_prior_weights`` factor;
+            ``refine_prior_precision`` alike): at 1e6 a unit is held as firmly as ``use_expression=False`` holds
+            it, and much stronger priors stop the float32 solver following the pose (:data:`MAX_UNIT_PRECISION`).
         expression_prior_weights: one factor per animation unit (the model's order), each in [0, 1e6], on that
             precision and on ``refine_prior_precision``: units the image can hardly tell apart can be weighted so
             that their shared motion goes to one of them (CANDIDE-3's Lid tightener and Upper lid raiser move the
@@ -296,20 +296,20 @@ class TrackerConfig:
             follow while an occluder cannot drag the pose.
         refine_scale_floor: the robust scale floor of that pass.
         refine_prior_precision: the animation units' prior precision in that pass (None: the same as
-            ``expression_prior_precision``; in [0, 1e6] as it). The pose is held there, so a weak prior lets the expression follow
-            without tilting the pose; measured on the 640x480 ``expressions`` scenario, 0.1 took the lip stretcher
-            from 0.081 / 0.88 (RMSE fraction of range / r) to 0.045 / 0.97 and the brow lowerer from 0.041 / 0.97
-            to 0.034 / 1.00; the mean rotation errors moved by at most 0.01 degree (maxima: expressions 1.16 -> 1.27,
-            scan_motion 5.87 -> 5.94 degrees). At first it broke recovery on the 3000-frame long runs
-            (evaluate.py): after the face left the frame the CANDIDE-3 run never recovered, because a lost track
-            with this weak prior fitted a pose 74 degrees wrong well enough to pass ``recover_confidence``; on the
-            James scan a lost track ran to 83 degrees of yaw and 6.5 m and scored 0.58 on 1 of its reference's
-            patches. Template management now solves recovery candidates and lost streams with
-            ``expression_prior_precision`` here (``track_step(conservative=)``), and a lost stream goes on from
-            a recovery candidate that beats the continued track, scores at least ``adopt_min_confidence`` and
-            lies more than ``adopt_min_angle_deg`` from it. With those, and 0.1 as the default, every loss on both
-            long runs is recovered within 12 frames of the face being in view again (CANDIDE-3 returns max 0.61
-            degree; James 1.54, as with None); the pooled confidence AUROC is 0.975.
+            ``expression_prior_precision``; in [0, 1e6] as it). The pose is held there, so a weak prior lets the
+            expression follow without tilting the pose; measured on the 640x480 ``expressions`` scenario, 0.1 took the
+            lip stretcher from 0.081 / 0.88 (RMSE fraction of range / r) to 0.045 / 0.97 and the brow lowerer from 0.041
+            / 0.97 to 0.034 / 1.00; the mean rotation errors moved by at most 0.01 degree (maxima: expressions 1.16 ->
+            1.27, scan_motion 5.87 -> 5.94 degrees). At first it broke recovery on the 3000-frame long runs
+            (evaluate.py): after the face left the frame the CANDIDE-3 run never recovered, because a lost track with
+            this weak prior fitted a pose 74 degrees wrong well enough to pass ``recover_confidence``; on the James scan
+            a lost track ran to 83 degrees of yaw and 6.5 m and scored 0.58 on 1 of its reference's patches. Template
+            management now solves recovery candidates and lost streams with ``expression_prior_precision`` here
+            (``track_step(conservative=)``), and a lost stream goes on from a recovery candidate that beats the
+            continued track, scores at least ``adopt_min_confidence`` and lies more than ``adopt_min_angle_deg`` from
+            it. With those, and 0.1 as the default, every loss on both long runs is recovered within 12 frames of the
+            face being in view again (CANDIDE-3 returns max 0.61 degree; James 1.54, as with None); the pooled
+            confidence AUROC is 0.975.
         expression_priority: template points that an animation unit moves are picked first when positive
             (:func:`~torchface.template.points.build_template`). Off by default: measured with 1.0 on the
             640x480 scenarios it improves the AUs (lip stretcher RMSE 0.080 -> 0.063 of range, r 0.90 -> 0.95)
