@@ -1995,13 +1995,13 @@ def _said_difference(name: str, then: object, now: object) -> str:
     if isinstance(then, dict) and isinstance(now, dict):
         fields = sorted(_setting_differences(then, now))
         options = _TRACKER_OPTIONS if name in ("tracker settings", "tracker") else {}
-        said = [_said_difference(options[f], _field_at(then, f), _field_at(now, f)) for f in fields if f in options]
+        parts = [_said_difference(options[f], _field_at(then, f), _field_at(now, f)) for f in fields if f in options]
         rest = [f for f in fields if f not in options]
-        if rest or not said:
+        if rest or not parts:
             values = [f"{f} {_said_value(_field_at(then, f))} then, {_said_value(_field_at(now, f))} now"
                       for f in rest[:4]]  # fmt: skip
-            said.append(f"{name}: {'; '.join(values)}{' and more' if len(rest) > 4 else ''}")
-        return "; ".join(said)
+            parts.append(f"{name}: {'; '.join(values)}{' and more' if len(rest) > 4 else ''}")
+        return "; ".join(parts)
     if isinstance(then, dict) or isinstance(now, dict):
         return f"{name} {'on' if then is not None else 'off'} then, {'on' if now is not None else 'off'} now"
     # (a setting left unset: "--focal None then" said Python's None where the user gave no --focal; a flag says on /
