@@ -184,7 +184,9 @@ from torchface.solver.least_squares import SolveStatus
 from torchface.tracker.fit import (
     LandmarkFit, check_model_landmarks, fit_landmarks, held_shape_indices, shape_prior_vector,
 )  # fmt: skip
-from torchface.tracker.lookahead import LookaheadConfig, check_model_units, check_refine_first, lookahead_fit
+from torchface.tracker.lookahead import (
+    LookaheadConfig, check_model_units, check_refine_first, levels_of, lookahead_fit,
+)  # fmt: skip
 from torchface.tracker.managed import initialise_managed, managed_step
 from torchface.tracker.params import ParamLayout
 from torchface.tracker.smoothing import SmoothingConfig, SmoothingState, one_euro_rotation_step, one_euro_step
@@ -480,6 +482,9 @@ class JobConfig:
             raise TypeError(f"tracker must be a TrackerConfig, got {type(self.tracker).__name__}")
         if self.lookahead is not None and not isinstance(self.lookahead, LookaheadConfig):
             raise TypeError(f"lookahead must be a LookaheadConfig or None, got {type(self.lookahead).__name__}")
+        for name, start in (("refine_first", _online_start(self)), ("lookahead", self.lookahead)):
+            if start is not None:  # (iterations for the tracker's levels: refused once a batch began, or at the turn)
+                levels_of(start, self.tracker.num_levels, f"{name}.iterations")
         if self.detector is not None and not isinstance(self.detector, str):
             raise TypeError(f"detector must be a detector name (str) or None, got {type(self.detector).__name__}")
         if not isinstance(self.device, (str, torch.device)):

@@ -225,17 +225,30 @@ def check_model_units(config: LookaheadConfig, model: FaceModel, name: str = "re
                          "(one value for all of them, or one per unit)")  # fmt: skip
 
 
-def levels_of(config: LookaheadConfig, num_levels: int) -> LookaheadConfig:
+def levels_of(config: LookaheadConfig, num_levels: int, name: str = "iterations") -> LookaheadConfig:
     """``config`` refining on at most ``num_levels`` pyramid levels (a tracker's
     :attr:`~torchface.tracker.step.TrackerConfig.num_levels`): its finest ones, ``iterations[-num_levels:]``.
 
     The tracker checks that its frames hold ``num_levels`` levels (at least ``3 * 2 ** (num_levels - 2)`` pixels a
     side); the default three of the refinement needed 6, and a tracker of 1 or 2 levels on smaller frames failed at
     its re-anchoring, in the middle of the stream (``images must be (B, C, H, W) with H, W >= 3``).
+
+    Raises:
+        ValueError: ``iterations`` give those levels none (``(5, 0, 0)`` for a tracker of 2 levels): nothing would be
+            refined, as with all 0 (refused by :class:`LookaheadConfig`). :func:`initialise_managed
+            <torchface.tracker.managed.initialise_managed>`, :func:`lookahead_fit` and ``JobConfig`` ask at the start,
+            not at the re-anchoring. ``name``: the setting's name in the message.
     """
     if len(config.iterations) <= num_levels:
         return config
-    return replace(config, iterations=config.iterations[-num_levels:])
+    kept = config.iterations[-num_levels:]
+    if not any(kept):
+        raise ValueError(
+            f"{name} {config.iterations} give none of the tracker's {num_levels} pyramid levels an iteration (the "
+            f"look-ahead refines on its finest {num_levels}: {kept}): nothing would be refined; give them some, e.g. "
+            f"iterations={config.iterations[:-num_levels] + (1,) * num_levels}, or track with more levels"
+        )
+    return replace(config, iterations=kept)
 
 
 def view_yaw_deg(rotation: Tensor, translation: Tensor | None = None) -> Tensor:
@@ -989,6 +1002,7 @@ def lookahead_fit(
     if not isinstance(config, LookaheadConfig):
         raise TypeError(f"config must be a LookaheadConfig, got {type(config).__name__}")
     check_model_units(config, model, "config")  # (refine_first_fit's checks, before the frames are tracked ahead)
+    levels_of(config, tracker_config.num_levels, "config.iterations")  # (asked again once the frames are tracked)
     if not isinstance(frames, Tensor):  # a numpy array was "must be (B, T, 3, H, W) ..., got (B, T, 3, H, W)"
         raise TypeError(f"frames must be a torch.Tensor (B, T, 3, H, W) float in [0, 1], got {type(frames).__name__}")
     if frames.dim() != 5 or frames.shape[1] < 2 or not frames.is_floating_point():  # uint8 went on as 0-255 floats

@@ -364,6 +364,7 @@ def initialise_managed(
             raise ValueError("refine_first needs template management (config.template.enabled)")
         check_model_units(refine_first, model)  # (now, not at the turn: shape_units and shape_prior_precision were
         # refused only at the re-anchoring frame, a tracker and a torchface track run that had gone on until then)
+        levels_of(refine_first, config.num_levels, "refine_first.iterations")  # (the same, at the turn)
         if fit is None:
             check_initialise_inputs(model, config, frames, landmarks_px, intrinsics, weights)
             fit = fit_landmarks(model, landmarks_px, intrinsics, weights, config=config.fit)
