@@ -184,7 +184,9 @@ from torchface.solver.least_squares import SolveStatus
 from torchface.tracker.fit import (
     LandmarkFit, check_model_landmarks, fit_landmarks, held_shape_indices, shape_prior_vector,
 )  # fmt: skip
-from torchface.tracker.lookahead import LookaheadConfig, check_model_units, check_refine_first, lookahead_fit
+from torchface.tracker.lookahead import (
+    LookaheadConfig, check_model_units, check_refine_first, levels_of, lookahead_fit,
+)  # fmt: skip
 from torchface.tracker.managed import initialise_managed, managed_step
 from torchface.tracker.params import ParamLayout
 from torchface.tracker.smoothing import SmoothingConfig, SmoothingState, one_euro_rotation_step, one_euro_step
@@ -239,6 +241,7 @@ _FIELDS = {
     "focal": "focal", "smooth": "smoothing", "lookahead": "lookahead", "keep-expression": "keep_expression",
     "max-batch": "max_batch", "no-online-refine": "refine_first=None",
     "motion-prediction": "TrackerConfig.motion_prediction",
+    "restart-after-unmatched": "TemplateConfig.restart_after_unmatched",
 }  # fmt: skip
 _PYTHON_WORDS: tuple[tuple[re.Pattern[str], str], ...] = (
     (re.compile(r"\brun the same command with " + _OPTION.format("resume")),
@@ -378,15 +381,15 @@ class JobConfig:
             detector gives the 68 iBUG points: with ``detector`` a model of another landmark count is refused (give
             landmarks files of its own points).
         smoothing: smooth the pose over time (``torchface track --smooth``: :class:`~torchface.tracker.SmoothingConfig`,
-            its ``rotation`` and ``translation`` filters; an ``expression`` filter is refused: the job smooths the
-            pose only), or None (the default: off, the outputs as without it). The CSV keeps its raw columns, which a
-            resumed run replays into the tracker, and appends :data:`~torchface.io.table.SMOOTH_COLUMNS`; the
-            overlay and the meshes show the smoothed pose, the normalised face is resampled at the raw one. The
-            filter runs on each row as written (replayed rows too: a resumed video's filter goes on from the state
-            the interrupted run had), at the frames' times, and starts afresh at a video's first tracked row, after
-            an unsuccessful row, after the online start's re-anchoring frame and after a row where a re-detection
-            was due (``redetect_after``). The sidecar's ``config.smoothing`` and the resume record say it; a resume
-            with another setting is refused.
+            its ``rotation`` and ``translation`` filters, one of them at least; an ``expression`` filter is refused: the
+            job smooths the pose only), or None (the default: off, the outputs as without it). The CSV keeps its raw
+            columns, which a resumed run replays into the tracker, and appends
+            :data:`~torchface.io.table.SMOOTH_COLUMNS`; the overlay and the meshes show the smoothed pose, the
+            normalised face is resampled at the raw one. The filter runs on each row as written (replayed rows too: a
+            resumed video's filter goes on from the state the interrupted run had), at the frames' times, and starts
+            afresh at a video's first tracked row, after an unsuccessful row, after the online start's re-anchoring
+            frame and after a row where a re-detection was due (``redetect_after``). The sidecar's ``config.smoothing``
+            and the resume record say it; a resume with another setting is refused.
         keep_expression: write the normalised face with the expression kept (``torchface track --keep-expression``):
             resampled at the person's neutral animation coefficients, those the row's ``AUxx_r`` are measured from (the
             first frame's fit, the online start's re-estimate after its re-anchoring frame, a restart's:
@@ -449,6 +452,10 @@ class JobConfig:
         if self.smoothing is not None and self.smoothing.expression is not None:
             raise ValueError("smoothing.expression must be None: torchface track smooths the pose only (the rows' "
                              "expression stays raw; ResultSmoother smooths it in Python)")  # fmt: skip
+        if self.smoothing is not None and self.smoothing.rotation is None and self.smoothing.translation is None:
+            # (the smooth_* columns were written, equal to the raw ones, and the sidecar said the pose was smoothed)
+            raise ValueError("smoothing smooths nothing with neither a rotation nor a translation filter: give one "
+                             "(SmoothingConfig() has both), or smoothing=None for no smooth_* columns")  # fmt: skip
         if self.model is not None and not isinstance(self.model, (str, os.PathLike)):
             raise TypeError(f"model must be a path to a face model file or None, got {type(self.model).__name__}")
         if isinstance(self.landmarks, (str, bytes, os.PathLike)):  # one path: its characters were taken as files
@@ -477,6 +484,9 @@ class JobConfig:
             raise TypeError(f"tracker must be a TrackerConfig, got {type(self.tracker).__name__}")
         if self.lookahead is not None and not isinstance(self.lookahead, LookaheadConfig):
             raise TypeError(f"lookahead must be a LookaheadConfig or None, got {type(self.lookahead).__name__}")
+        for name, start in (("refine_first", _online_start(self)), ("lookahead", self.lookahead)):
+            if start is not None:  # (iterations for the tracker's levels: refused once a batch began, or at the turn)
+                levels_of(start, self.tracker.num_levels, f"{name}.iterations")
         if self.detector is not None and not isinstance(self.detector, str):
             raise TypeError(f"detector must be a detector name (str) or None, got {type(self.detector).__name__}")
         if not isinstance(self.device, (str, torch.device)):
@@ -1964,13 +1974,41 @@ def _setting_differences(then: object, now: object, at: str = "") -> list[str]:
     return [] if same else [at.rstrip(".")]
 
 
+#: The tracker settings (:class:`~torchface.tracker.TrackerConfig` fields, dotted) that ``torchface track`` sets with
+#: an option of its own: a settings difference names the option (:func:`_said_difference`), as ``--smooth``'s does.
+_TRACKER_OPTIONS = {"motion_prediction": "--motion-prediction",
+                    "template.restart_after_unmatched": "--restart-after-unmatched"}  # fmt: skip
+
+
+def _field_at(setting: object, dotted: str) -> object:
+    """The value of field ``dotted`` (:func:`_setting_differences`' names: ``template.lost_after``, ``iterations.1``)
+    in ``setting`` as a record holds it (:func:`_as_json`)."""
+    for key in dotted.split(".") if dotted else ():
+        setting = setting[int(key)] if isinstance(setting, list) else setting[key]  # type: ignore[index]
+    return setting
+
+
+def _said_value(value: object) -> str:
+    """A settings field's value in a message: as Python writes it, a nested setting as ``{...}``, long ones cut."""
+    said = "{...}" if isinstance(value, dict) else repr(value)
+    return said if len(said) <= 60 else said[:57] + "..."
+
+
 def _said_difference(name: str, then: object, now: object) -> str:
     """How a message says that setting ``name`` was ``then`` and is ``now``: the two values (None: ``default`` for
     ``--focal``, ``max(W, H)``; else ``none``), or for settings dataclasses (dicts; None where off) whether it was on,
-    or which of their fields differ."""
+    or which of their fields differ and their two values (the first four; a tracker field that ``torchface track``
+    sets with an option, :data:`_TRACKER_OPTIONS`, as that option)."""
     if isinstance(then, dict) and isinstance(now, dict):
         fields = sorted(_setting_differences(then, now))
-        return f"{name}: {', '.join(fields[:4])}{' and more' if len(fields) > 4 else ''}"
+        options = _TRACKER_OPTIONS if name in ("tracker settings", "tracker") else {}
+        parts = [_said_difference(options[f], _field_at(then, f), _field_at(now, f)) for f in fields if f in options]
+        rest = [f for f in fields if f not in options]
+        if rest or not parts:
+            values = [f"{f} {_said_value(_field_at(then, f))} then, {_said_value(_field_at(now, f))} now"
+                      for f in rest[:4]]  # fmt: skip
+            parts.append(f"{name}: {'; '.join(values)}{' and more' if len(rest) > 4 else ''}")
+        return "; ".join(parts)
     if isinstance(then, dict) or isinstance(now, dict):
         return f"{name} {'on' if then is not None else 'off'} then, {'on' if now is not None else 'off'} now"
     # (a setting left unset: "--focal None then" said Python's None where the user gave no --focal; a flag says on /

@@ -1476,7 +1476,8 @@ def test_resume_with_motion_prediction_goes_on_as_the_uninterrupted_run(tmp_path
         if len(videos) == 1:
             assert main(["track", str(clip), "--out", str(out), "--resume", *args[:3], "--motion-prediction",
                          "0.5"]) == 2  # fmt: skip
-            assert "cannot resume" in (err := capsys.readouterr().err) and "motion_prediction" in err
+            err = capsys.readouterr().err  # (its values: it said "(tracker: motion_prediction)")
+            assert "cannot resume" in err and "--motion-prediction 1.0 then, 0.5 now" in err
         landmarks = ["--landmarks", str(lm)] * (len(videos) - 1)
         assert main(["track", *map(str, videos), "--out", str(out), "--resume", *landmarks, *args]) == 0
         for video in videos:
@@ -2414,6 +2415,37 @@ def test_resume_refuses_other_settings_or_a_changed_input(clip, tmp_path, capsys
     assert json.loads((out / "short.json").read_text())["frames"] == 4
 
 
+def test_resume_refused_over_motion_prediction_names_the_option_and_its_values(clip, tmp_path, capsys):
+    """A resume with another ``--motion-prediction`` (a TrackerConfig field, set by an option of its own) was refused
+    as "(tracker: motion_prediction)", no values, where ``--smooth`` says "--smooth off then, on now": now the option
+    and its two values, for partial rows (the record) and complete outputs (the sidecar); another tracker field is
+    named with its values too."""
+    from torchface.tracker.step import TrackerConfig
+
+    video, lm, _ = clip
+    short = _short_npy(video, tmp_path / "short.npy", 4)
+    out = tmp_path / "out"
+    args = ["track", str(short), "--out", str(out), "--landmarks", str(lm), "--resume", "--quiet", "--no-online-refine"]
+    _interrupted(short, out, lm, 2, refine_first=None)
+    assert main(args + ["--motion-prediction", "0.5"]) == 2
+    assert "other settings or input (--motion-prediction 0.0 then, 0.5 now)" in capsys.readouterr().err
+    assert main(args) == 0
+    capsys.readouterr()
+    assert main(args + ["--motion-prediction", "0.5"]) == 2  # complete outputs
+    assert "other settings (--motion-prediction 0.0 then, 0.5 now)" in capsys.readouterr().err
+    lost_after = replace(TrackerConfig(), template=replace(TrackerConfig().template, lost_after=10))
+    with pytest.raises(InputError, match=r"other settings \(tracker: template\.lost_after 15 then, 10 now\)"):
+        track_videos([short], JobConfig(out_dir=out, landmarks=(lm,), refine_first=None, resume=True,
+                                        tracker=lost_after))  # fmt: skip
+    from torchface.job import _as_json, _said_difference  # --restart-after-unmatched as its option too
+
+    then, now = _as_json(TrackerConfig()), _as_json(replace(TrackerConfig(), motion_prediction=0.5, template=replace(
+        TrackerConfig().template, restart_after_unmatched=2, lost_after=10)))  # fmt: skip
+    said = _said_difference("tracker", then, now)
+    assert said == ("--motion-prediction 0.0 then, 0.5 now; --restart-after-unmatched 0 then, 2 now; tracker: "
+                    "template.lost_after 15 then, 10 now")
+
+
 def test_resume_takes_equal_settings_in_another_form_and_an_earlier_versions_record(clip, tmp_path, capsys):
     """The record kept the settings as their ``repr``: ``TrackerConfig(robust_c=5)`` then, ``5.0`` now (one
     setting) was refused as "tracker settings", and so was a partial run of an earlier version once TrackerConfig
@@ -2441,7 +2473,8 @@ def test_resume_takes_equal_settings_in_another_form_and_an_earlier_versions_rec
     _interrupted(short, out, lm, 2, refine_first=None)
     earlier["tracker settings"] = old_tracker.replace("lost_after=15", "lost_after=30")  # another setting
     record_path.write_text(json.dumps({"input": record["input"], "anchor": None, "settings": earlier}))
-    with pytest.raises(InputError, match=r"other settings or input \(tracker settings: template\.lost_after\)"):
+    with pytest.raises(InputError, match=r"other settings or input \(tracker settings: template\.lost_after 30 then, "
+                                         r"15 now\)"):  # fmt: skip
         track_videos([short], replace(base, resume=True))
 
 
@@ -2463,7 +2496,7 @@ def test_resume_skips_complete_outputs_whose_settings_are_equal_in_another_versi
     assert track_videos([short], replace(config, resume=True))[0].skipped
     tracker["template"]["lost_after"] = 30
     path.write_text(json.dumps(sidecar))
-    with pytest.raises(InputError, match=r"other settings \(tracker: template\.lost_after\)"):
+    with pytest.raises(InputError, match=r"other settings \(tracker: template\.lost_after 30 then, 15 now\)"):
         track_videos([short], replace(config, resume=True))
 
 
@@ -2479,9 +2512,13 @@ def test_a_settings_field_an_earlier_versions_record_lacks_is_compared_at_its_de
     out = tmp_path / "out"
     base = JobConfig(out_dir=out, landmarks=(lm,), refine_first=None, resume=True)
     record_path = out / "short.record.partial"
-    for field, other, name in ((("motion_prediction",), TrackerConfig(motion_prediction=0.5), "motion_prediction"),
+    # (each named with its values: --motion-prediction, an option of torchface track, as that option, which a Python
+    # caller is told as TrackerConfig.motion_prediction; it was "tracker settings: motion_prediction", no values)
+    for field, other, name in ((("motion_prediction",), TrackerConfig(motion_prediction=0.5),
+                                r"TrackerConfig\.motion_prediction 0\.0 then, 0\.5 now"),
                                (("template", "recovery_every"), replace(TrackerConfig(), template=replace(
-                                   TrackerConfig().template, recovery_every=3)), r"template\.recovery_every")):
+                                   TrackerConfig().template, recovery_every=3)),
+                                r"tracker settings: template\.recovery_every 5 then, 3 now")):  # fmt: skip
         _interrupted(short, out, lm, 2, refine_first=None)
         record = json.loads(record_path.read_text())
         holder = record["settings"]["tracker settings"]
@@ -2489,14 +2526,14 @@ def test_a_settings_field_an_earlier_versions_record_lacks_is_compared_at_its_de
             holder = holder[key]
         del holder[field[-1]]  # a field added since
         record_path.write_text(json.dumps(record))
-        with pytest.raises(InputError, match=rf"other settings or input \(tracker settings: {name}\)"):
+        with pytest.raises(InputError, match=rf"other settings or input \({name}\)"):
             track_videos([short], replace(base, tracker=other))
     assert track_videos([short], base)[0].frames == 4
     path = output_paths(out, "short")["json"]  # complete outputs (the sidecar's config.tracker) alike
     sidecar = json.loads(path.read_text())
     del sidecar["config"]["tracker"]["motion_prediction"]
     path.write_text(json.dumps(sidecar))
-    with pytest.raises(InputError, match=r"other settings \(tracker: motion_prediction\)"):
+    with pytest.raises(InputError, match=r"other settings \(TrackerConfig\.motion_prediction 0\.0 then, 0\.5 now\)"):
         track_videos([short], replace(base, tracker=TrackerConfig(motion_prediction=0.5)))
     assert track_videos([short], base)[0].skipped
 
@@ -2520,9 +2557,9 @@ def test_a_nested_settings_field_a_record_lacks_is_compared_at_the_enclosing_def
                replace(tc, template=replace(tc.template, dissimilarity=replace(
                    diss, patch_size=type(diss)().patch_size))))  # fmt: skip
     assert classes[0] != tc and classes[1] != tc  # (the enclosing defaults differ from the classes')
-    for field, other, name in ((("fit", "fit_expression"), classes[0], r"fit\.fit_expression"),
+    for field, other, name in ((("fit", "fit_expression"), classes[0], r"fit\.fit_expression True then, False now"),
                                (("template", "dissimilarity", "patch_size"), classes[1],
-                                r"template\.dissimilarity\.patch_size")):  # fmt: skip
+                                r"template\.dissimilarity\.patch_size 7 then, 11 now")):  # fmt: skip
         _interrupted(short, out, lm, 2, refine_first=None)
         record = json.loads(record_path.read_text())
         holder = record["settings"]["tracker settings"]
@@ -2538,7 +2575,7 @@ def test_a_nested_settings_field_a_record_lacks_is_compared_at_the_enclosing_def
     del sidecar["config"]["tracker"]["fit"]["fit_expression"]
     path.write_text(json.dumps(sidecar))
     assert track_videos([short], base)[0].skipped
-    with pytest.raises(InputError, match=r"other settings \(tracker: fit\.fit_expression"):
+    with pytest.raises(InputError, match=r"other settings \(tracker: fit\.fit_expression True then, False now\)"):
         track_videos([short], replace(base, tracker=classes[0]))
 
 

@@ -202,6 +202,11 @@ def test_job_smoothing_setting_is_checked(tmp_path) -> None:
         JobConfig(out_dir=tmp_path, smoothing=True)  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="pose only"):
         JobConfig(out_dir=tmp_path, smoothing=SmoothingConfig(expression=OneEuroConfig()))
+    # Neither filter: the smooth_* columns were written equal to the raw ones (and the sidecar said smoothed)
+    with pytest.raises(ValueError, match=r"smoothing smooths nothing .*smoothing=None for no smooth_\* columns"):
+        JobConfig(out_dir=tmp_path, smoothing=SmoothingConfig(rotation=None, translation=None))
+    for one in (SmoothingConfig(rotation=None), SmoothingConfig(translation=None)):  # one filter is smoothing
+        assert JobConfig(out_dir=tmp_path, smoothing=one).smoothing is one
 
 
 def test_track_grid_smooths_offline_as_the_job_did(runs) -> None:

@@ -111,6 +111,23 @@ def test_config_defaults_and_validation():
             TemplateConfig(**{name: float("nan")})
 
 
+def test_confidence_threshold_above_recover_confidence_is_refused():
+    """A stream is lost after ``lost_after`` frames below ``confidence_threshold`` and the loss ends at a frame reaching
+    ``recover_confidence``: with the threshold above it, a frame between the two counted toward a loss and ended it at
+    once, so ``lost_after`` did nothing (``confidence_threshold=0.99, lost_after=1`` reported status 0 at confidence
+    0.56 on every frame). Refused, saying to raise both; equal ones and the defaults are taken."""
+    with pytest.raises(ValueError, match=r"confidence_threshold \(0\.99\) must not exceed recover_confidence "
+                                         r"\(0\.35\).*TemplateConfig\(confidence_threshold=0\.99, "
+                                         r"recover_confidence=0\.99\)"):  # fmt: skip
+        TemplateConfig(confidence_threshold=0.99, lost_after=1)
+    with pytest.raises(ValueError, match="must not exceed recover_confidence"):
+        replace(TemplateConfig(), recover_confidence=0.2)
+    assert TemplateConfig(confidence_threshold=0.99, recover_confidence=0.99).lost_after == 15
+    assert TemplateConfig(confidence_threshold=0.35).recover_confidence == 0.35
+    default = TemplateConfig()
+    assert (default.confidence_threshold, default.recover_confidence) == (0.3, 0.35)
+
+
 def test_pose_bins_known_answers():
     cfg = TemplateConfig(yaw_bin_deg=15.0, pitch_bin_deg=10.0, bin_centre_fraction=0.25)
     ypr = torch.tensor([[0.0, 0.0, 40.0], [16.0, -9.0, 0.0], [7.4, 2.4, 0.0], [7.6, 0.0, 0.0], [-31.0, 21.0, 0.0]])

@@ -241,6 +241,35 @@ def test_online_start_refuses_shape_settings_the_model_lacks_at_the_start(model)
                        refine_first=LookaheadConfig(shape_units=(S - 1,), shape_prior_precision=(2.0,) * S))
 
 
+def test_iterations_that_give_the_trackers_levels_none_are_refused_at_the_start(model, tmp_path):
+    """The look-ahead refines on the tracker's finest levels (``levels_of``): ``iterations=(5, 0, 0)`` with a tracker of
+    2 levels gives them none, and the online start re-anchored the stream without refining it (all 0 is refused by
+    ``LookaheadConfig``). Refused at the start (``initialise_managed``, ``FaceTracker.initialise``,
+    ``lookahead_fit``, ``JobConfig``), naming the setting, not at the re-anchoring; where the tracker has the levels
+    it is taken, and a ``JobConfig`` whose online start does not run (with ``lookahead``) does not check it."""
+    from torchface.job import JobConfig
+    from torchface.tracker.lookahead import levels_of
+
+    frames, gt = render([[0.0, 0.0, 0.0], [20.0, 0.0, 0.0]])
+    frames = frames.float() / 255.0 if frames.dtype == torch.uint8 else frames.float()
+    lm = gt.landmarks_px.float()
+    coarse = LookaheadConfig(iterations=(5, 0, 0))
+    said = r"iterations \(5, 0, 0\) give none of the tracker's 2 pyramid levels an iteration .* iterations=\(5, 1, 1\)"
+    with pytest.raises(ValueError, match="refine_first." + said):
+        initialise_managed(model, CFG, frames[:1], lm[:1], gt.intrinsics, refine_first=coarse)
+    tracker = FaceTracker(CFG, model=model, refine_first=coarse, pyramid="config")
+    with pytest.raises(ValueError, match="refine_first." + said):
+        tracker.initialise(frames[:1], lm[:1], gt.intrinsics)
+    assert tracker.state is None
+    with pytest.raises(ValueError, match="config." + said):
+        lookahead_fit(model, CFG, frames[None], lm[:1], gt.intrinsics, config=coarse)
+    for name in ("refine_first", "lookahead"):
+        with pytest.raises(ValueError, match=f"{name}." + said):
+            JobConfig(out_dir=tmp_path, tracker=CFG, **{name: coarse})
+    JobConfig(out_dir=tmp_path, tracker=CFG, refine_first=coarse, lookahead=LookaheadConfig())  # (unused)
+    assert levels_of(coarse, 3) is coarse and levels_of(LookaheadConfig(iterations=(0, 4, 0)), 2).iterations == (4, 0)
+
+
 def test_keyframe_expressions_keep_their_change_out_of_the_start(model):
     """Keyframes at +-20 degrees with the jaw dropped 0.6 after a neutral first frame (the render's face, true
     poses, exact landmarks). Untold, the refinement pulls the jaw the keyframes show into the starting
@@ -510,6 +539,9 @@ def test_initialise_rejects_a_fit_of_another_batch_and_casts_its_dtype(model):
         (dict(photometric_weight=0.0), "photometric_weight"), (dict(iterations=()), "iterations"),
         (dict(shape_units=(1, 1)), "shape_units"), (dict(max_points=0), "max_points"),
         (dict(silhouette_margin=-1), "silhouette_margin"),
+        # (nothing refined: the online start re-anchored the stream at the pose it had)
+        (dict(iterations=(0, 0, 0)), r"iterations must give at least one level a positive count, got \(0, 0, 0\)"),
+        (dict(iterations=(0,)), "refine_first=None"),
         # (a NaN threshold passed "< 0", and no point passes it: the refinement had none)
         (dict(gradient_threshold=float("nan")), r"gradient_threshold must be a finite number >= 0, got nan"),
     ],

@@ -1220,6 +1220,29 @@ def _step_all(model, config, state, frames, start):
     return state, results
 
 
+def test_management_turned_off_mid_sequence_after_a_re_anchoring_is_refused(model, four_streams):
+    """Template management turned off mid-sequence (``config.template.enabled`` False, e.g. ``tracker.config =
+    TrackerConfig(template=TemplateConfig(enabled=False))``) after the online start had re-anchored a stream made its
+    reported pose jump by the re-anchoring's offset (the bare step's pose is the re-anchored head frame's; management
+    maps it back to the first result's), without a word. Refused, naming the streams, the state left as it was;
+    streams not re-anchored (still waiting, or lost) turn it off as before."""
+    frames, lm, la = four_streams
+    config = LEAVE_CFG
+    state, _ = initialise_managed(model, config, frames[:, 0], lm, Intrinsics.default(W, H), refine_first=la)
+    state, _ = _step_all(model, config, state, frames[:, :6], 1)
+    assert not torch.equal(state.management.head_rotation[0], torch.eye(3))  # stream 0 re-anchored, 1-3 not
+    bare = replace(config, template=TemplateConfig(enabled=False))
+    params = state.params.clone()
+    with pytest.raises(ValueError, match=r"cannot be turned off mid-sequence .* re-anchored streams \[0\]: their pose "
+                                         r"would jump"):  # fmt: skip
+        managed_step(model, bare, state, frames[:, 6])
+    assert torch.equal(state.params, params)
+    _, on = managed_step(model, config, state.select([0]), frames[:1, 6])  # (it goes on with management)
+    assert bool(on.success[0])
+    _, off = managed_step(model, bare, state.select([1, 3]), frames[[1, 3], 6])
+    assert off.status.shape == (2,) and bool(off.success.all())
+
+
 def test_selected_streams_track_as_in_the_full_batch(model, four_streams):
     """``TrackerState.select``: streams kept (in another order) from a batch track on as they would have in it, one
     re-anchored by the online start, one still waiting for it, one lost; selecting every stream in order changes

@@ -1278,6 +1278,10 @@ def test_expression_prior_weights_are_validated_and_sized_to_the_model():
     with pytest.raises(ValueError, match="expression_prior_weights"):
         TrackerConfig(expression_prior_weights=(1.0, float("nan")))
     assert TrackerConfig(expression_prior_weights=[1, 2]).expression_prior_weights == (1.0, 2.0)
+    # Without expression estimation no unit is solved for: the weights did nothing, unsaid
+    with pytest.raises(ValueError, match=r"expression_prior_weights weigh .* use_expression=False never solves for"):
+        TrackerConfig(use_expression=False, expression_prior_weights=(1.0,) * 7 + (10.0, 1.0, 1.0, 1.0))
+    assert not TrackerConfig(use_expression=False).use_expression
     from torchface.tracker.step import expression_prior
 
     like = torch.zeros(2, 3)
@@ -1312,6 +1316,34 @@ def test_expression_sparsity_is_validated_and_reweights_each_unit():
     both = replace(sparse, expression_prior_weights=(1.0, 0.5, 4.0, 1.0))
     torch.testing.assert_close(expression_prior(both, 2.0, alpha),
                                torch.tensor([[2.0, 1.0, 1.6, 0.2], [2 / 3, 1 / 3, 8 / 3, 2 / 3]]))  # fmt: skip
+
+
+def test_priors_the_float32_solver_cannot_use_are_refused_naming_the_setting_and_its_range():
+    """An ``expression_prior_weights`` of 1e16 or ``expression_prior_precision=1e20`` held the pose at the first
+    frame's while every frame reported success (the solver's damping, relative to the Hessian's largest diagonal
+    entry, swamped the pose's); ``expression_sparsity=1e39`` was a ``RuntimeError`` ("value cannot be converted to
+    type float without overflow") at the first step. A unit's prior precision (either precision times its weight) is
+    at most 1e6, where the unit is held as ``use_expression=False`` holds it; the sparsity is in [1e-12, 1e6]."""
+    from torchface.tracker.step import MAX_UNIT_PRECISION, SPARSITY_RANGE
+
+    assert MAX_UNIT_PRECISION == 1e6 and SPARSITY_RANGE == (1e-12, 1e6)
+    for kwargs, said in (
+        (dict(expression_prior_precision=1e20), r"expression_prior_precision must be in \[0, 1e6\], got 1e\+20: "),
+        (dict(refine_prior_precision=2e6), r"refine_prior_precision must be in \[0, 1e6\] or None, got 2000000\.0"),
+        (dict(expression_prior_weights=(1e16,) * 11), r"expression_prior_weights\[0\] must be in \[0, 1e6\]"),
+        (dict(expression_prior_weights=(1.0,) * 7 + (1e4, 1.0, 1.0, 1.0), expression_prior_precision=1e3),
+         r"expression_prior_weights\[7\] \(10000\) times expression_prior_precision \(1000\) is 1e\+07"),
+        (dict(expression_prior_weights=(1e6, 1.0), refine_prior_precision=2.0),
+         r"expression_prior_weights\[0\] \(1e\+06\) times refine_prior_precision \(2\) is 2e\+06"),
+        (dict(expression_sparsity=1e39), r"expression_sparsity must be in \[1e-12, 1e\+06\] or None, got 1e\+39"),
+        (dict(expression_sparsity=1e-46), r"expression_sparsity must be in \[1e-12, 1e\+06\] or None, got 1e-46"),
+    ):  # fmt: skip
+        with pytest.raises(ValueError, match=said):
+            TrackerConfig(**kwargs)
+    # the ends of the ranges are taken (a unit held at 1e6: expression_prior_weights=(1e6, ...) at precision 1)
+    TrackerConfig(expression_prior_precision=1e6, refine_prior_precision=None, expression_sparsity=1e6)
+    TrackerConfig(expression_prior_weights=(1e6, 0.0), refine_prior_precision=1.0, expression_sparsity=1e-12)
+    TrackerConfig(expression_prior_precision=0.0, expression_prior_weights=(1e6,))
 
 
 def test_expression_sparsity_follows_active_units_and_holds_the_others(model, two_streams):
@@ -1362,7 +1394,7 @@ def test_expression_prior_weights_hold_one_unit_and_leave_the_others(model, two_
     state = replace(states[0], anim_prior_mean=centre)
     A = model.num_animation
     jaw, brow = model.animation_names.index(JAW), model.animation_names.index(BROW)
-    jaw_held = tuple(1e7 if j == jaw else 1.0 for j in range(A))
+    jaw_held = tuple(1e6 if j == jaw else 1.0 for j in range(A))  # (the most a unit's prior may be)
     for solver in (TrackSolver.FAST, TrackSolver.REFERENCE):
         config = replace(L2, solver=solver)
         _, plain = track_step(model, config, state, frames[:, 3])

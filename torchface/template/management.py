@@ -166,7 +166,9 @@ class TemplateConfig:
             0.57 on a 320x240 render, at 0.6 it scores 0.92 (patches there are left out instead).
         dissimilarity: settings of the fiducial patches and their Lucas-Kanade (in pixels of the ``G`` face).
         confidence_threshold: a frame with dissimilarity confidence below this is not confident: nothing is
-            learnt from it (no mosaic entry, no texture update) and it counts toward a loss. At 0.5 the
+            learnt from it (no mosaic entry, no texture update) and it counts toward a loss. At most
+            ``recover_confidence`` (refused above it: a frame between the two would count toward a loss and end
+            it, and ``lost_after`` would never declare a stream lost); raise both together. At 0.5 the
             light_switch scenario (error about 1 degree, confidence 0.4-0.5 under the strongest light) was
             declared lost for 10 frames; at 0.3 never, while scan_motion's stretches above 5 degrees of error
             (confidence 0.04-0.2) still are.
@@ -205,7 +207,8 @@ class TemplateConfig:
             streams, right tracks 0.3-1 degree off at 40-45 degrees of yaw scored below 0.01 and were
             replaced by candidates 60-100 degrees off that scored 0.000 (the track's confidence was lower
             still). 0.01 is a mean patch displacement of about 2 d0 (1.6 px of the normalised face).
-        recover_confidence: the confidence that ends a loss (from the continued track or a recovery). A wrong
+        recover_confidence: the confidence that ends a loss (from the continued track or a recovery); at least
+            ``confidence_threshold`` (a loss holds until a frame clearly above it). A wrong
             placement scores near 0; a right one on a face unlike the model (the James scan) scores 0.6-0.7 near
             frontal, so 0.7 kept such a stream lost for tens of frames, and 0.3-0.45 at 45-50 degrees of yaw
             from its nearest entry, so 0.5 kept the James long run lost through a whole turn with errors of 4-5
@@ -347,6 +350,19 @@ class TemplateConfig:
                           ("lost_after_very_low", 1), ("recovery_every", 1), ("search_points", 8),
                           ("restart_after_unmatched", 0), ("recover_min_patches", 0)):  # fmt: skip
             object.__setattr__(self, name, check_int(getattr(self, name), name, low))
+        # A stream is lost after lost_after frames below confidence_threshold, and the loss ends at a frame reaching
+        # recover_confidence (managed_step): with confidence_threshold above it, a frame between the two counted
+        # toward the loss and ended it at once, so lost_after did nothing (confidence_threshold=0.99, lost_after=1:
+        # status 0 at confidence 0.56 on every frame). The default (0.3, 0.35) holds a loss until a frame clearly
+        # above the threshold.
+        if self.confidence_threshold > self.recover_confidence:
+            raise ValueError(
+                f"confidence_threshold ({self.confidence_threshold:g}) must not exceed recover_confidence "
+                f"({self.recover_confidence:g}): a frame scoring between them counts toward a loss and ends it, so "
+                f"lost_after would never declare a stream lost; raise recover_confidence with it, e.g. "
+                f"TemplateConfig(confidence_threshold={self.confidence_threshold:g}, "
+                f"recover_confidence={self.confidence_threshold:g})"
+            )
         if self.normalised_size < 48:
             raise ValueError(f"normalised_size must be >= 48 (smaller faces hold too few fiducial patches for a "
                              f"confidence), got {self.normalised_size}")  # fmt: skip

@@ -108,7 +108,8 @@ class LookaheadConfig:
             expression change the tracker measured there, ``key_expression`` of :func:`refine_first_fit`).
         photometric_weight: weight of the photometric term (squared landmark pixels per squared gray level);
             1e3 and 1e5 tracked worse than 1e4 on the James scan.
-        iterations: Levenberg-Marquardt iterations per pyramid level, coarsest first (levels 2, 1, 0). The
+        iterations: Levenberg-Marquardt iterations per pyramid level, coarsest first (levels 2, 1, 0); 0 skips a
+            level, and at least one level must have some (all 0 is refused: nothing would be refined). The
             online start and :func:`lookahead_fit` refine on at most the tracker's
             :attr:`~torchface.tracker.step.TrackerConfig.num_levels` levels, the finest ones
             (:func:`levels_of`): a tracker of fewer levels takes frames too small for this pyramid.
@@ -168,6 +169,11 @@ class LookaheadConfig:
             raise ValueError(f"min_keyframes must be 1 or 2 (one keyframe per side), got {self.min_keyframes!r}")
         if not self.iterations:
             raise ValueError(f"iterations must be a non-empty tuple of ints >= 0, got {self.iterations!r}")
+        if not any(self.iterations):  # (the start was re-anchored from the fit it had, refined by nothing)
+            raise ValueError(f"iterations must give at least one level a positive count, got {self.iterations!r}: "
+                             "with none the fit is not refined, and the online start re-anchors the stream at the "
+                             "pose it had (refine_first=None, torchface track --no-online-refine, turns it "
+                             "off)")  # fmt: skip
         units = self.shape_units
         if units is not None and len(set(units)) != len(units):
             raise ValueError(f"shape_units must be distinct non-negative indices, got {self.shape_units!r}")
@@ -219,17 +225,30 @@ def check_model_units(config: LookaheadConfig, model: FaceModel, name: str = "re
                          "(one value for all of them, or one per unit)")  # fmt: skip
 
 
-def levels_of(config: LookaheadConfig, num_levels: int) -> LookaheadConfig:
+def levels_of(config: LookaheadConfig, num_levels: int, name: str = "iterations") -> LookaheadConfig:
     """``config`` refining on at most ``num_levels`` pyramid levels (a tracker's
     :attr:`~torchface.tracker.step.TrackerConfig.num_levels`): its finest ones, ``iterations[-num_levels:]``.
 
     The tracker checks that its frames hold ``num_levels`` levels (at least ``3 * 2 ** (num_levels - 2)`` pixels a
     side); the default three of the refinement needed 6, and a tracker of 1 or 2 levels on smaller frames failed at
     its re-anchoring, in the middle of the stream (``images must be (B, C, H, W) with H, W >= 3``).
+
+    Raises:
+        ValueError: ``iterations`` give those levels none (``(5, 0, 0)`` for a tracker of 2 levels): nothing would be
+            refined, as with all 0 (refused by :class:`LookaheadConfig`). :func:`initialise_managed
+            <torchface.tracker.managed.initialise_managed>`, :func:`lookahead_fit` and ``JobConfig`` ask at the start,
+            not at the re-anchoring. ``name``: the setting's name in the message.
     """
     if len(config.iterations) <= num_levels:
         return config
-    return replace(config, iterations=config.iterations[-num_levels:])
+    kept = config.iterations[-num_levels:]
+    if not any(kept):
+        raise ValueError(
+            f"{name} {config.iterations} give none of the tracker's {num_levels} pyramid levels an iteration (the "
+            f"look-ahead refines on its finest {num_levels}: {kept}): nothing would be refined; give them some, e.g. "
+            f"iterations={config.iterations[:-num_levels] + (1,) * num_levels}, or track with more levels"
+        )
+    return replace(config, iterations=kept)
 
 
 def view_yaw_deg(rotation: Tensor, translation: Tensor | None = None) -> Tensor:
@@ -1004,6 +1023,7 @@ def lookahead_fit(
     if not isinstance(config, LookaheadConfig):
         raise TypeError(f"config must be a LookaheadConfig, got {type(config).__name__}")
     check_model_units(config, model, "config")  # (refine_first_fit's checks, before the frames are tracked ahead)
+    levels_of(config, tracker_config.num_levels, "config.iterations")  # (asked again once the frames are tracked)
     if not isinstance(frames, Tensor):  # a numpy array was "must be (B, T, 3, H, W) ..., got (B, T, 3, H, W)"
         raise TypeError(f"frames must be a torch.Tensor (B, T, 3, H, W) float in [0, 1], got {type(frames).__name__}")
     if frames.dim() != 5 or frames.shape[1] < 2 or frames.shape[2] not in (1, 3) or not frames.is_floating_point():

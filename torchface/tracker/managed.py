@@ -364,6 +364,7 @@ def initialise_managed(
             raise ValueError("refine_first needs template management (config.template.enabled)")
         check_model_units(refine_first, model)  # (now, not at the turn: shape_units and shape_prior_precision were
         # refused only at the re-anchoring frame, a tracker and a torchface track run that had gone on until then)
+        levels_of(refine_first, config.num_levels, "refine_first.iterations")  # (the same, at the turn)
         if fit is None:
             check_initialise_inputs(model, config, frames, landmarks_px, intrinsics, weights)
             fit = fit_landmarks(model, landmarks_px, intrinsics, weights, config=config.fit)
@@ -1211,7 +1212,10 @@ def managed_step(
         :func:`~torchface.tracker.step.track_step` (confidence = residual confidence, dissimilarity NaN, entry 0).
 
     Raises:
-        ValueError: bad frames, or a state without management while management is enabled.
+        ValueError: bad frames, a state without management while management is enabled, or management turned off
+            (``config.template.enabled`` False) in a state whose online start has re-anchored streams: their results
+            are in the first result's head frame only through management (:func:`_in_head_frame`), and the bare
+            step's would jump by the re-anchoring's offset (initialise again to track on without it).
 
     Runs in inference mode (:mod:`torchface.tracker.inference`) unless ``frames`` or the state's parameters or
     templates require grad with grad mode on; the tensors handed back are normal tensors. With gradients asked for, the
@@ -1224,6 +1228,7 @@ def managed_step(
     check_api_types(model, config, state, with_state=True)
     tc = config.template
     if not tc.enabled:
+        _check_not_reanchored(state.management)
         new_state, result = track_step(model, config, state, frames)
         return new_state, _plain(result)
     ms = state.management
@@ -1656,6 +1661,36 @@ def _native_gate(
     confident, lost, reverted, attempt, add = flags.unbind(0)
     low_count, very_low_count, since = counts.unbind(0)
     return confident, low_count, very_low_count, lost, reverted, since, attempt, add, bins
+
+
+def _reanchored(ms: ManagementState) -> Tensor | None:
+    """``(B,)`` bool, the streams whose online start has re-anchored them with an offset (``head_rotation``,
+    ``head_translation`` other than the identity); None where no stream has been re-anchored yet."""
+    D, d = ms.head_rotation, ms.head_translation  # set together, by the first re-anchoring
+    if D is None or d is None:
+        return None
+    moved = (D - torch.eye(3, dtype=D.dtype, device=D.device)).abs()
+    return (moved.flatten(1).amax(-1) > 0) | (d.abs().amax(-1) > 0)
+
+
+def _check_not_reanchored(ms: object) -> None:
+    """Refuse template management turned off mid-sequence (:func:`managed_step` with ``config.template.enabled``
+    False) in a state whose streams the online start has re-anchored: the bare step reports the pose of the
+    re-anchored head frame, not the first result's, which only management maps back (:func:`_in_head_frame`), so
+    their pose jumped by the re-anchoring's offset, unsaid (1.2 degrees of pitch on a rendered 20 degree turn at
+    160x120). Turning it on mid-sequence is refused too (the state has no management)."""
+    if not isinstance(ms, ManagementState):
+        return
+    moved = _reanchored(ms)
+    if moved is None or not bool(moved.any()):
+        return
+    streams = moved.nonzero().flatten().tolist()
+    raise ValueError(
+        f"template management cannot be turned off mid-sequence (config.template.enabled False) once the online start "
+        f"has re-anchored streams {streams}: their pose would jump by the re-anchoring's offset (management reports "
+        "it in the first result's head frame); keep TrackerConfig.template enabled for this sequence, or start it "
+        "again without it (initialise, FaceTracker.initialise)"
+    )
 
 
 def _in_head_frame(result: TrackResult, ms: ManagementState) -> TrackResult:

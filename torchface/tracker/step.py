@@ -181,6 +181,27 @@ def usable_status(status: Tensor) -> Tensor:
 #: adds the frame size to it).
 MAX_SELECTION_SEED: int = 2**63 - 1
 
+#: The strongest prior an animation unit may be given: :attr:`TrackerConfig.expression_prior_precision` and
+#: ``refine_prior_precision``, each times the unit's ``expression_prior_weights`` factor, are at most this. Measured
+#: on a rendered 160x120 head turning 20 degrees (16 frames, every unit's precision the same): at 1e4-1e6 the units
+#: are held as firmly as ``use_expression=False`` holds them (the pose within 0.02 degree of that ablation's), at
+#: 1e8-1e10 within 0.09-0.14 degree, at 1e12 3 degrees off, and from 1e14 on the pose stayed the first frame's while
+#: every frame reported success: the float32 solver's damping is relative to the largest diagonal entry of its
+#: Hessian, which the prior then is, and it swamps the pose's.
+MAX_UNIT_PRECISION = 1e6
+
+#: The range of :attr:`TrackerConfig.expression_sparsity`: above it the prior is the Gaussian one (``None``) for any
+#: unit within 1e6 of its centre (1e39 overflowed float32: a ``RuntimeError`` at the first step); below it every
+#: active unit's prior is gone already (1e-12 and 1e-30 tracked alike), and under about 1e-45 float32 holds 0 (the
+#: streams LOST).
+SPARSITY_RANGE = (1e-12, 1e6)
+
+_STRONG_PRIOR = (
+    "a unit's prior precision (expression_prior_precision or refine_prior_precision times its "
+    "expression_prior_weights factor) is at most 1e6: at 1e6 a unit is held as firmly as use_expression=False holds "
+    "it, and from about 1e12 the float32 solver stops following the pose (the first frame's reported at every frame)"
+)
+
 
 @dataclass(frozen=True)
 class TrackerConfig:
@@ -222,10 +243,14 @@ class TrackerConfig:
         visibility_interval: the fast solver re-rasterizes that z-buffer every this many frames and reuses
             the masks in between (back-facing points are still dropped every iteration).
         expression_prior_precision: precision (per squared unit) of the Gaussian prior on the animation units.
-        expression_prior_weights: one factor per animation unit (the model's order) on that precision and on
-            ``refine_prior_precision``: units the image can hardly tell apart can be weighted so that their
-            shared motion goes to one of them (CANDIDE-3's Lid tightener and Upper lid raiser move the eyelid
-            vertices nearly as Eyes closed does; docs/limitations.md). None: 1 for every unit.
+            In [0, 1e6], and so is each unit's (times its ``expression_prior_weights`` factor;
+            ``refine_prior_precision`` alike): at 1e6 a unit is held as firmly as ``use_expression=False`` holds
+            it, and much stronger priors stop the float32 solver following the pose (:data:`MAX_UNIT_PRECISION`).
+        expression_prior_weights: one factor per animation unit (the model's order), each in [0, 1e6], on that
+            precision and on ``refine_prior_precision``: units the image can hardly tell apart can be weighted so
+            that their shared motion goes to one of them (CANDIDE-3's Lid tightener and Upper lid raiser move the
+            eyelid vertices nearly as Eyes closed does; docs/limitations.md). None: 1 for every unit. Refused with
+            ``use_expression=False`` (no unit is solved for).
         expression_sparsity: ``delta`` > 0 turns that Gaussian prior into a reweighted L1 (Laplace) prior,
             which prefers few active units: before each pass, unit ``j``'s precision is multiplied by
             ``delta / max(|alpha_j - mu_j|, delta)`` (``alpha``: the estimate the pass starts from, i.e. the
@@ -235,7 +260,8 @@ class TrackerConfig:
             a Gaussian prior spreads the motion over all of them (its minimum-norm split). Template management's
             lost streams and recovery candidates keep the Gaussian prior (``track_step(conservative=)``): a unit
             pushed by an occluder would otherwise lose its prior and roam (on the CANDIDE-3 long run a recovery
-            after the first occluder took 27 frames instead of 2). None: Gaussian. Measured with 0.1 on the
+            after the first occluder took 27 frames instead of 2). None: Gaussian; else in [1e-12, 1e6]
+            (:data:`SPARSITY_RANGE`: above it the prior is the Gaussian one already). Measured with 0.1 on the
             640x480 ``expressions`` scenario (landmark-noise seed 0, against None): rotation error 0.56 -> 0.42
             degrees mean, AU RMSE jaw drop 0.036 -> 0.007, lip stretcher 0.047 -> 0.007, brow lowerer 0.025 ->
             0.011, outer brow raiser 0.023 -> 0.012 (seeds 1 and 2 alike); eyes closed is not helped (0.231).
@@ -276,20 +302,20 @@ class TrackerConfig:
             follow while an occluder cannot drag the pose.
         refine_scale_floor: the robust scale floor of that pass.
         refine_prior_precision: the animation units' prior precision in that pass (None: the same as
-            ``expression_prior_precision``). The pose is held there, so a weak prior lets the expression follow
-            without tilting the pose; measured on the 640x480 ``expressions`` scenario, 0.1 took the lip stretcher
-            from 0.081 / 0.88 (RMSE fraction of range / r) to 0.045 / 0.97 and the brow lowerer from 0.041 / 0.97
-            to 0.034 / 1.00; the mean rotation errors moved by at most 0.01 degree (maxima: expressions 1.16 -> 1.27,
-            scan_motion 5.87 -> 5.94 degrees). At first it broke recovery on the 3000-frame long runs
-            (evaluate.py): after the face left the frame the CANDIDE-3 run never recovered, because a lost track
-            with this weak prior fitted a pose 74 degrees wrong well enough to pass ``recover_confidence``; on the
-            James scan a lost track ran to 83 degrees of yaw and 6.5 m and scored 0.58 on 1 of its reference's
-            patches. Template management now solves recovery candidates and lost streams with
-            ``expression_prior_precision`` here (``track_step(conservative=)``), and a lost stream goes on from
-            a recovery candidate that beats the continued track, scores at least ``adopt_min_confidence`` and
-            lies more than ``adopt_min_angle_deg`` from it. With those, and 0.1 as the default, every loss on both
-            long runs is recovered within 12 frames of the face being in view again (CANDIDE-3 returns max 0.61
-            degree; James 1.54, as with None); the pooled confidence AUROC is 0.975.
+            ``expression_prior_precision``; in [0, 1e6] as it). The pose is held there, so a weak prior lets the
+            expression follow without tilting the pose; measured on the 640x480 ``expressions`` scenario, 0.1 took the
+            lip stretcher from 0.081 / 0.88 (RMSE fraction of range / r) to 0.045 / 0.97 and the brow lowerer from 0.041
+            / 0.97 to 0.034 / 1.00; the mean rotation errors moved by at most 0.01 degree (maxima: expressions 1.16 ->
+            1.27, scan_motion 5.87 -> 5.94 degrees). At first it broke recovery on the 3000-frame long runs
+            (evaluate.py): after the face left the frame the CANDIDE-3 run never recovered, because a lost track with
+            this weak prior fitted a pose 74 degrees wrong well enough to pass ``recover_confidence``; on the James scan
+            a lost track ran to 83 degrees of yaw and 6.5 m and scored 0.58 on 1 of its reference's patches. Template
+            management now solves recovery candidates and lost streams with ``expression_prior_precision`` here
+            (``track_step(conservative=)``), and a lost stream goes on from a recovery candidate that beats the
+            continued track, scores at least ``adopt_min_confidence`` and lies more than ``adopt_min_angle_deg`` from
+            it. With those, and 0.1 as the default, every loss on both long runs is recovered within 12 frames of the
+            face being in view again (CANDIDE-3 returns max 0.61 degree; James 1.54, as with None); the pooled
+            confidence AUROC is 0.975.
         expression_priority: template points that an animation unit moves are picked first when positive
             (:func:`~torchface.template.points.build_template`). Off by default: measured with 1.0 on the
             640x480 scenarios it improves the AUs (lip stretcher RMSE 0.080 -> 0.063 of range, r 0.90 -> 0.95)
@@ -417,6 +443,11 @@ class TrackerConfig:
             if not weights:
                 raise ValueError("expression_prior_weights must be one factor per animation unit or None, got ()")
             object.__setattr__(self, "expression_prior_weights", tuple(float(w) for w in weights))
+            if not self.use_expression:  # (the units are held: their prior, weighted or not, did nothing, unsaid)
+                raise ValueError("expression_prior_weights weigh the prior of animation units that "
+                                 "use_expression=False never solves for (they are held at the start's values): "
+                                 "leave them None, or estimate the expression (use_expression=True)")  # fmt: skip
+        self._check_prior_strength()
         if len(self.iterations) != self.num_levels or any(i < 1 for i in self.iterations):
             raise ValueError(
                 f"iterations must give a positive count per level ({self.num_levels}), got {self.iterations}"
@@ -429,6 +460,38 @@ class TrackerConfig:
                              "decides where the prediction applies")
         for name, kind in (("robust", RobustKind), ("backend", Backend), ("solver", TrackSolver)):
             check_choice(getattr(self, name), name, kind)  # (solver="fast" ran the reference solver)
+
+    def _check_prior_strength(self) -> None:
+        """Refuse priors the float32 solver cannot use (:data:`MAX_UNIT_PRECISION`, :data:`SPARSITY_RANGE`): an
+        ``expression_prior_weights`` of 1e16 or ``expression_prior_precision=1e20`` held the pose at the first
+        frame's while every frame reported success, ``expression_sparsity=1e39`` was a ``RuntimeError`` ("value
+        cannot be converted to type float without overflow") at the first step."""
+        sparsity = self.expression_sparsity
+        if sparsity is not None:
+            low, high = SPARSITY_RANGE
+            if not low <= sparsity <= high:
+                raise ValueError(
+                    f"expression_sparsity must be in [{low:g}, {high:g}] or None, got {sparsity!r}: above {high:g} "
+                    f"the prior is the Gaussian one already (expression_sparsity=None gives it), below {low:g} every "
+                    "active unit's prior is gone already, and float32 overflows past 3e38 and holds 0 under 1e-45"
+                )
+        precisions = [(name, value) for name in ("expression_prior_precision", "refine_prior_precision")
+                      if (value := getattr(self, name)) is not None]  # fmt: skip
+        for name, value in precisions:
+            if value > MAX_UNIT_PRECISION:
+                none = " or None" if name == "refine_prior_precision" else ""
+                raise ValueError(f"{name} must be in [0, 1e6]{none}, got {value!r}: {_STRONG_PRIOR}")
+        weights = self.expression_prior_weights or (1.0,)
+        for i, w in enumerate(weights):
+            if w > MAX_UNIT_PRECISION:
+                raise ValueError(f"expression_prior_weights[{i}] must be in [0, 1e6], got {w!r}: {_STRONG_PRIOR}")
+        i = max(range(len(weights)), key=lambda k: weights[k])
+        for name, value in precisions:
+            if value * weights[i] > MAX_UNIT_PRECISION:
+                raise ValueError(
+                    f"expression_prior_weights[{i}] ({weights[i]:g}) times {name} ({value:g}) is "
+                    f"{value * weights[i]:g}: {_STRONG_PRIOR}; lower one of them"
+                )
 
 
 def face_width_px(model: FaceModel, translation: Tensor, intrinsics: Intrinsics) -> Tensor:
