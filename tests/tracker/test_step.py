@@ -1872,3 +1872,16 @@ def test_gray_pyramid_and_level_intrinsics_refuse_what_they_cannot_mean():
     with pytest.raises(TypeError, match="level must be an int >= 0, got float 1.5"):
         level_intrinsics(cam, 1.5, 16, 16)  # type: ignore[arg-type]
     assert level_intrinsics(cam, 1, 16, 16).fx == cam.fx / 2
+
+
+def test_the_functional_entry_points_run_in_full_precision_inside_autocast(model, two_streams):
+    """``initialise`` and ``track_step`` under a caller's ``torch.autocast`` (CPU bfloat16) give the results they give
+    outside it, to the bit (``torchface._autocast.full_precision``): ``initialise`` once lost its wrapper when a
+    function was put between it and its decorator, and its templates were then built in bfloat16 products."""
+    frames, gts = two_streams
+    ref, _ = run(model, BASE, frames[:, :2], landmarks_of(gts))
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        got, _ = run(model, BASE, frames[:, :2], landmarks_of(gts))
+    for a, b in zip(ref, got):
+        assert torch.equal(a.rotation, b.rotation) and torch.equal(a.translation, b.translation)
+        assert torch.equal(a.anim_coeffs, b.anim_coeffs) and torch.equal(a.illumination, b.illumination)

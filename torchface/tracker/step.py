@@ -1365,7 +1365,6 @@ def fail_templates(templates: Sequence[Template], failed: Tensor) -> list[Templa
     return [replace(tpl, valid=tpl.valid & keep) for tpl in templates]
 
 
-@full_precision
 def check_given_fit(model: FaceModel, fit: LandmarkFit, batch: int) -> None:
     """Refuse a :class:`~torchface.tracker.fit.LandmarkFit` handed to :func:`initialise` that is not ``batch``
     streams' fit with ``model``: every field's shape (``rotation (B, 3, 3)``, ``shape_coeffs (B, S)``,
@@ -1398,6 +1397,7 @@ def check_given_fit(model: FaceModel, fit: LandmarkFit, batch: int) -> None:
     )
 
 
+@full_precision
 def initialise(
     model: FaceModel,
     config: TrackerConfig,
