@@ -249,6 +249,36 @@ def test_load_state_dict_forgets_the_tracked_sequence(model, three_streams):
     FaceTracker(CFG, model, detector=_NoFaces()).load_state_dict(with_net.state_dict())
 
 
+def test_a_failed_load_state_dict_leaves_the_tracker_as_it_was(model, three_streams):
+    """``load_state_dict`` that fails (an unexpected key, a missing or resized detector weight) raises torch's
+    RuntimeError and changes nothing: the tracker forgot its sequence before torch raised (the next step said "a
+    state_dict was loaded"), and torch had copied the detector weights that matched. The tracker tracks on exactly as
+    a copy made before the failed load; ``strict=False`` still loads and forgets."""
+    frames, lm = three_streams
+    tracker = FaceTracker(CFG, model, detector=_NoFaces(), refine_first=None)
+    tracker.initialise(frames[:, 0], lm)
+    tracker(frames[:, 1])
+    fork, state = copy.deepcopy(tracker), tracker.state
+    good = {"detector.scale": torch.full((), 2.0)}
+    for bad, message in (
+        ({**good, "x": torch.zeros(1)}, 'Unexpected key.*"x"'),
+        ({"detector.scale": torch.ones(2)}, "size mismatch for detector.scale"),
+        ({}, 'Missing key.*"detector.scale"'),
+    ):
+        with pytest.raises(RuntimeError, match=message):
+            tracker.load_state_dict(bad)
+        assert tracker.state is state and float(tracker.detector.scale) == 1.0
+    plain = FaceTracker(CFG, model, refine_first=None)  # (no weights at all)
+    plain.initialise(frames[:, 0], lm)
+    before = plain.state
+    with pytest.raises(RuntimeError, match='Unexpected key.*"x"'):
+        plain.load_state_dict({"x": torch.zeros(1)})
+    assert plain.state is before
+    assert_same(fork(frames[:, 2]), tracker(frames[:, 2]))
+    tracker.load_state_dict({**good, "x": torch.zeros(1)}, strict=False)
+    assert tracker.state is None and float(tracker.detector.scale) == 2.0
+
+
 def test_a_saved_tracker_goes_on_as_the_original(model, three_streams):
     """The module's documented checkpoint, ``torch.save(tracker)`` mid-stream and ``torch.load(...,
     weights_only=False)``, continues exactly as the original does; the original is not changed by saving."""

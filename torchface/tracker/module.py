@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import warnings
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -93,7 +94,7 @@ class FaceTracker(DeviceCheckedModule):
     Saving: the tracker has no learnable parameters, so ``state_dict()`` is empty (it holds a detector's weights
     where the detector is an ``nn.Module``) and holds no tracked sequence; ``load_state_dict`` therefore forgets the
     tracker's sequence, as :meth:`reset` does (the next step says so), so that a loaded checkpoint never continues
-    the sequence the tracker held before. To checkpoint a tracker mid-stream, ``torch.save(tracker, path)`` (or
+    the sequence the tracker held before; a load that fails leaves the tracker as it was. To checkpoint a tracker mid-stream, ``torch.save(tracker, path)`` (or
     pickle it) and load it with ``torch.load(path, weights_only=False)`` (trusted files only);
     ``copy.deepcopy(tracker)`` forks a stream, and so does ``copy.copy(tracker)``, which shares the model, config
     and detector but not the tracked state. Each continues exactly as the original would, independently of it.
@@ -234,6 +235,47 @@ class FaceTracker(DeviceCheckedModule):
         new.__dict__.update({k: v.copy() if isinstance(v, (dict, set)) else v for k, v in self.__dict__.items()})
         new._state = copy.deepcopy(self._state)
         return new
+
+    def load_state_dict(  # type: ignore[override]
+        self, state_dict: Mapping[str, Any], strict: bool = True, assign: bool = False
+    ) -> Any:
+        """``nn.Module.load_state_dict``, which forgets the tracked sequence (a state_dict holds none:
+        :meth:`_load_from_state_dict`), checked before anything changes: a load that fails (keys missing or
+        unexpected, a detector weight of another size) raises torch's ``RuntimeError`` and leaves the tracker as it
+        was, its tracked sequence and a detector network's weights unchanged (it forgot the sequence, and torch had
+        copied the weights that matched, before raising). The check loads into a stand-in whose tensors are empty
+        ``meta`` ones (no data copied). Loaded by a module that holds it, the tracker forgets its sequence as torch
+        reaches it, whatever else that load refuses."""
+        self._check_loads(state_dict, strict, assign)
+        kept = (self._state, self._dropped, self._tracking)
+        try:
+            return super().load_state_dict(state_dict, strict, assign)
+        except BaseException:
+            self._state, self._dropped, self._tracking = kept
+            raise
+
+    def _check_loads(self, state_dict: Mapping[str, Any], strict: bool, assign: bool) -> None:
+        """Raise what ``load_state_dict(state_dict, strict, assign)`` would raise, changing nothing: the load made
+        into a stand-in, the tracker's settings with no tracked state, whose submodules (a detector network) are
+        copies with empty ``meta`` tensors of their parameters' and buffers' shapes and dtypes."""
+        if not isinstance(state_dict, Mapping):
+            return  # (torch's own TypeError, before anything changes)
+        memo: dict[int, Any] = {}
+        for t in [*self.parameters(), *self.buffers()]:
+            empty = torch.empty_like(t, device="meta")
+            memo[id(t)] = torch.nn.Parameter(empty, t.requires_grad) if isinstance(t, torch.nn.Parameter) else empty
+        probe = self.__class__.__new__(self.__class__)
+        probe.__dict__.update(self.__dict__)
+        try:
+            probe.__dict__.update(
+                {name: copy.deepcopy(self.__dict__[name], memo) for name in ("_modules", "_parameters", "_buffers")}
+            )
+        except Exception:  # (a detector network holding what cannot be copied: loaded unchecked, the sequence kept)
+            return
+        probe.__dict__.update(_state=None, _dropped=None, _tracking=None)
+        with warnings.catch_warnings():  # ("copying from a non-meta parameter ... to a meta parameter ... a no-op")
+            warnings.simplefilter("ignore")
+            torch.nn.Module.load_state_dict(probe, state_dict, strict, assign)
 
     def _load_from_state_dict(
         self, state_dict: Mapping[str, Any], prefix: str, local_metadata: dict[str, Any], strict: bool,
