@@ -61,7 +61,7 @@ from torch import Tensor
 
 from torchface._autocast import full_precision
 from torchface._compiling import is_compiling
-from torchface._device import DeviceCheckedModule, check_device, check_holds_data
+from torchface._device import DeviceCheckedModule, check_holds_data, tensor_mover
 from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS, remove_illumination
 from torchface.appearance.sampling import sample_at_pixels
 from torchface.backend import Backend, use_native
@@ -180,13 +180,17 @@ class NormalisedFaceLayout:
         self._weights[key] = (faces, weights)  # the faces held too: their id is not reused while the entry lives
         return weights
 
-    def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> "NormalisedFaceLayout":
-        """A copy on ``device`` with the floating tensors in ``dtype`` (index and mask tensors keep theirs)."""
-        device = check_device(device)  # (a device this machine lacks: one ValueError listing those it has)
+    def to(
+        self, device: torch.device | str | int | torch.dtype | None = None, dtype: torch.dtype | None = None,
+        non_blocking: bool = False, copy: bool = False,
+    ) -> "NormalisedFaceLayout":
+        """A copy on ``device`` with the floating tensors in ``dtype`` (index and mask tensors keep theirs), called as
+        ``Tensor.to`` is (``.to(device)``, ``.to(dtype)``, ``.to(device, dtype)``, keywords, ``non_blocking`` and
+        ``copy``: :func:`~torchface._device.tensor_mover`, as ``TrackResult.to``)."""
+        move = tensor_mover(device, dtype, non_blocking, copy)  # (a device this machine lacks: a ValueError)
         return NormalisedFaceLayout(
-            self.size, self.margin, self.intrinsics, self.translation.to(device=device, dtype=dtype), self.num_faces,
-            self.pixel_index.to(device=device), self.face_index.to(device=device),
-            self.bary.to(device=device, dtype=dtype), self.mask.to(device=device),
+            self.size, self.margin, self.intrinsics, move(self.translation), self.num_faces, move(self.pixel_index),
+            move(self.face_index), move(self.bary), move(self.mask),
         )  # fmt: skip
 
 

@@ -19,7 +19,7 @@ from torch import Tensor
 
 from torchface._autocast import full_precision
 from torchface._compiling import is_compiling
-from torchface._device import check_holds_data, check_to_arguments
+from torchface._device import check_holds_data, tensor_mover
 from torchface.conventions import (
     NORMALISED_CHECK_MIN_SIDE, NORMALISED_LANDMARK_MAX_SPAN, NORMALISED_LANDMARK_RANGE,
 )
@@ -218,16 +218,14 @@ class LandmarkFit:
         return LandmarkFit(*(getattr(self, f)[index] for f in self.__dataclass_fields__))
 
     def to(
-        self, device: torch.device | str | int | torch.dtype | None = None, dtype: torch.dtype | None = None
+        self, device: torch.device | str | int | torch.dtype | None = None, dtype: torch.dtype | None = None,
+        non_blocking: bool = False, copy: bool = False,
     ) -> "LandmarkFit":
         """A copy on ``device`` with the floating tensors in ``dtype`` (a floating dtype; ``status`` keeps its integer
-        dtype), called as ``Tensor.to`` is (``.to(device)``, ``.to(dtype)``, ``.to(device, dtype)``, keywords:
-        :func:`~torchface._device.check_to_arguments`, as ``TrackResult.to``)."""
-        device, dtype = check_to_arguments(device, dtype)  # (a device this machine lacks: a ValueError listing those)
-        return LandmarkFit(*(
-            v.to(device=device, dtype=dtype) if v.is_floating_point() else v.to(device=device)
-            for v in (getattr(self, f) for f in self.__dataclass_fields__)
-        ))  # fmt: skip
+        dtype), called as ``Tensor.to`` is (``.to(device)``, ``.to(dtype)``, ``.to(device, dtype)``, keywords,
+        ``non_blocking`` and ``copy``: :func:`~torchface._device.tensor_mover`, as ``TrackResult.to``)."""
+        move = tensor_mover(device, dtype, non_blocking, copy)  # (a device this machine lacks: a ValueError)
+        return LandmarkFit(*(move(getattr(self, f)) for f in self.__dataclass_fields__))
 
 
 #: The shape units :class:`FitConfig` holds by default (``held_shape_units=None``): CANDIDE-3's units that move
