@@ -399,7 +399,7 @@ def test_lookahead_fit_finds_the_turns_and_refines_each_stream(model):
     torch.testing.assert_close(fit.rotation[1:], plain.rotation, rtol=0, atol=1e-6)  # one keyframe: not refined
     one, _ = lookahead_fit(model, CFG, both[1:], lm, gt.intrinsics, config=replace(cfg, min_keyframes=1))
     assert float(geodesic_angle_deg(one.rotation.double(), plain.rotation.double())) > 0.1  # refined
-    state, first = initialise(model, CFG, frames[:1], lm, gt.intrinsics, fit=fit.select(slice(0, 1)))
+    state, first = initialise(model, CFG, frames[:1], lm, gt.intrinsics, fit=fit.select([0]))
     torch.testing.assert_close(first.rotation, fit.rotation[:1], rtol=0, atol=1e-6)
     torch.testing.assert_close(state.shape_coeffs, fit.shape_coeffs[:1], rtol=0, atol=0)
 

@@ -213,9 +213,28 @@ class LandmarkFit:
     rms_px: Tensor
     status: Tensor
 
-    def select(self, index: int | slice | Tensor) -> "LandmarkFit":
-        """The streams ``index`` (over ``B``; a slice keeps the batch dimension)."""
-        return LandmarkFit(*(getattr(self, f)[index] for f in self.__dataclass_fields__))
+    def select(self, index: int | Sequence[int] | Tensor) -> "LandmarkFit":
+        """The fit of streams ``index``: an int (or a 0-d integer tensor; negative from the end) is one stream's fit
+        without the batch dimension (``rotation (3, 3)``); stream indices (a list or int64 tensor, in the order
+        wanted) or a ``(B,)`` bool mask keep it, ``fit.select([b])`` being stream ``b``'s fit as a batch of one. The
+        indices are read as ``TrackResult.select`` reads them (:func:`~torchface.tracker.step.stream_index`): None, a
+        slice, a set, a uint8 tensor and an index out of range are refused (None added a dimension, a slice was
+        taken, an index out of range was torch's bare IndexError).
+
+        Example:
+            >>> fit.select([1]).rotation.shape, fit.select(1).rotation.shape     # doctest: +SKIP
+            (torch.Size([1, 3, 3]), torch.Size([3, 3]))
+        """
+        from torchface.tracker.step import stream_index
+
+        if self.status.ndim != 1:  # (its fields' first dimension is no batch: rotation's rows were taken for one)
+            raise ValueError("this LandmarkFit is one stream's, without its batch dimension (select of an int): "
+                             "select streams from the batched fit")  # fmt: skip
+        one = (isinstance(index, (int, np.integer)) and not isinstance(index, (bool, np.bool_))) or (
+            isinstance(index, Tensor) and index.ndim == 0 and index.dtype not in (torch.bool, torch.uint8)
+        )  # fmt: skip
+        rows = stream_index(index, int(self.status.shape[0]), self.status.device)  # type: ignore[arg-type]
+        return LandmarkFit(*(getattr(self, f)[rows[0] if one else rows] for f in self.__dataclass_fields__))
 
     def to(
         self, device: torch.device | str | int | torch.dtype | None = None, dtype: torch.dtype | None = None,

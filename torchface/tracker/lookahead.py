@@ -1023,14 +1023,14 @@ def lookahead_fit(
         w = None if weights is None else weights[b]
         # (priors per stream: a batch can mix dense and sparse starts)
         return _stream_start(
-            model, frames[b, idx], intrinsics, landmarks_px[b], fit.select(slice(b, b + 1)), R[b, keys[b]],
+            model, frames[b, idx], intrinsics, landmarks_px[b], fit.select([b]), R[b, keys[b]],
             t[b, keys[b]], key_expression=expr[b, keys[b]], landmark_weights=w, config=la,
             backend=tracker_config.backend, **landmark_fit_priors(model, fc, intrinsics, landmarks_px[b], w),
         )  # fmt: skip
 
     # The streams with their keyframes refined together, as the online start's (one batched solve per keyframe
     # count, at most REANCHOR_BATCH streams each): each as alone
-    streams = [fit.select(slice(b, b + 1)) for b in range(B)]
+    streams = [fit.select([b]) for b in range(B)]
     groups: dict[int, list[int]] = {}
     for b in range(B):
         if len(keys[b]) >= config.min_keyframes:
@@ -1041,5 +1041,5 @@ def lookahead_fit(
             refined = _refine_starts(model, [problem(b) for b in chunk], intrinsics, la,
                                      backend=tracker_config.backend)[0]  # fmt: skip
             for j, b in enumerate(chunk):
-                streams[b] = refined.select(slice(j, j + 1))
+                streams[b] = refined.select([j])
     return LandmarkFit(*(torch.cat([getattr(f, n) for f in streams]) for n in LandmarkFit.__dataclass_fields__)), keys

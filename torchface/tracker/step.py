@@ -1288,8 +1288,8 @@ def check_given_fit(model: FaceModel, fit: LandmarkFit, batch: int) -> None:
     rotation = shapes.get("rotation")
     if rotation == (3, 3):  # (its 3 rows were read as the batch: "got batch 3")
         raise ValueError(f"fit must be a LandmarkFit of batch {batch}, got one stream's fit without its batch "
-                         "dimension, rotation (3, 3) (LandmarkFit.select of an int drops it; fit.select(slice(b, "
-                         "b + 1)) keeps it)")  # fmt: skip
+                         "dimension, rotation (3, 3) (LandmarkFit.select of an int drops it; fit.select([b]) keeps "
+                         "it)")  # fmt: skip
     if not isinstance(rotation, tuple) or len(rotation) != 3:
         raise ValueError(f"fit must be a LandmarkFit of batch {batch}, got rotation {rotation}: (B, 3, 3) wanted")
     if rotation[0] != batch:  # (said "got LandmarkFit", the right type)
