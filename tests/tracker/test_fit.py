@@ -213,9 +213,16 @@ def test_held_shape_units(model):
     )
     with pytest.raises(ValueError, match="not among"):
         fit_landmarks(model, noisy, CAM, config=FitConfig(held_shape_units=("Nose length",)))
-    for bad in (["Mouth width"], ("Mouth width", "Mouth width"), (3,)):
-        with pytest.raises(ValueError, match="held_shape_units"):
-            FitConfig(held_shape_units=bad)
+    # A list is taken as a tuple and a wrong type is a TypeError, as by the other tuple settings (a list was refused,
+    # with a ValueError, as a wrong type was): check_names.
+    assert FitConfig(held_shape_units=["Mouth width"]) == FitConfig(held_shape_units=("Mouth width",))
+    assert FitConfig(held_shape_units=np.array(["Mouth width"])).held_shape_units == ("Mouth width",)
+    with pytest.raises(ValueError, match=r"held_shape_units must name each unit once, got \['Mouth width'\]"):
+        FitConfig(held_shape_units=("Mouth width", "Mouth width"))
+    for bad, message in (((3,), r"held_shape_units\[0\] must be a unit name \(a str\), got int 3"),
+                         ("Mouth width", r"None or a tuple of unit names, got str 'Mouth width' \(one unit: ")):
+        with pytest.raises(TypeError, match=message):
+            FitConfig(held_shape_units=bad)  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="held_shape_precision must be a finite number >= 0, got -1.0"):
         FitConfig(held_shape_precision=-1.0)
 

@@ -24,7 +24,7 @@ from torchface.conventions import (
     NORMALISED_CHECK_MIN_SIDE, NORMALISED_LANDMARK_MAX_SPAN, NORMALISED_LANDMARK_RANGE,
 )
 from torchface.geometry._checks import (
-    check_bool, check_int, check_intrinsics, check_number, check_optional_int, check_reals,
+    check_bool, check_int, check_intrinsics, check_names, check_number, check_optional_int, check_reals,
 )
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.projection import pose_projection_jacobian, project_points, project_points_jacobian
@@ -53,10 +53,10 @@ class FitConfig:
             squared pixels of landmark error (at ``reference_focal_px``) per unit coefficient squared: one value
             for every unit, or a tuple of one per unit (its length the model's ``S``; :func:`fit_landmarks` checks
             it). Weak (2) so that the shape fits faces unlike the mean.
-        held_shape_units: names of the shape units whose precision is ``held_shape_precision`` instead. From
-            one frontal view the units that move features vertically trade with the head's pitch, and 2 px of
-            landmark noise then tips the pose by up to 2.75 degrees (8 draws; 6.41 with a starting expression);
-            held, 1.42 (1.46). None: :data:`CANDIDE3_VERTICAL_UNITS`, those of them the model has (none for a
+        held_shape_units: names (a tuple or list) of the shape units whose precision is ``held_shape_precision``
+            instead. From one frontal view the units that move features vertically trade with the head's pitch, and
+            2 px of landmark noise then tips the pose by up to 2.75 degrees (8 draws; 6.41 with a starting
+            expression); held, 1.42 (1.46). None: :data:`CANDIDE3_VERTICAL_UNITS`, those of them the model has (none for a
             model without those names); ``()``: none. Names given must be the model's (:func:`fit_landmarks`
             checks). The online look-ahead start lets these units go again once the head has turned
             (:class:`~torchface.tracker.lookahead.LookaheadConfig`), since a side view separates them from the
@@ -164,10 +164,8 @@ class FitConfig:
         object.__setattr__(self, "max_iterations", check_int(self.max_iterations, "max_iterations", 1))  # 2.5: at the fit
         count = check_optional_int(self.sparse_landmark_count, "sparse_landmark_count", 0)
         object.__setattr__(self, "sparse_landmark_count", count)
-        held = self.held_shape_units
-        if held is not None and (not isinstance(held, tuple) or any(not isinstance(n, str) for n in held)
-                                 or len(set(held)) != len(held)):
-            raise ValueError(f"held_shape_units must be None or a tuple of distinct unit names, got {held!r}")
+        # (a list was a ValueError, as was a wrong type: the other tuple settings take a list, and say TypeError)
+        object.__setattr__(self, "held_shape_units", check_names(self.held_shape_units, "held_shape_units", True))
 
 
 def check_precisions(value: object, name: str) -> float | tuple[float, ...]:

@@ -45,7 +45,7 @@ from torch import Tensor
 from torchface._autocast import full_precision
 from torchface.appearance.sampling import image_with_gradients, sample_at_pixels
 from torchface.backend import Backend
-from torchface.geometry._checks import check_bool, check_int, check_ints, check_number, check_real
+from torchface.geometry._checks import check_bool, check_int, check_ints, check_names, check_number, check_real
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.projection import project_points, project_points_jacobian
 from torchface.geometry.so3 import (
@@ -158,9 +158,9 @@ class LookaheadConfig:
         object.__setattr__(self, "iterations", check_ints(self.iterations, "iterations", 0))
         if self.shape_units is not None:
             object.__setattr__(self, "shape_units", check_ints(self.shape_units, "shape_units", 0))
-        kept = self.kept_shape_units
-        if not isinstance(kept, tuple) or not all(isinstance(n, str) for n in kept) or len(set(kept)) != len(kept):
-            raise ValueError(f"kept_shape_units must be a tuple of distinct unit names, got {kept!r}")
+        # (a list was a ValueError, as was a wrong type: the other tuple settings take a list, and say TypeError)
+        kept = check_names(self.kept_shape_units, "kept_shape_units")
+        object.__setattr__(self, "kept_shape_units", kept)
         if kept and self.shape_units is not None:  # (they were ignored: shape_units names every unit re-estimated)
             raise ValueError(f"kept_shape_units {kept} applies with shape_units=None (the held units); with "
                              f"shape_units={self.shape_units} given, leave the kept units out of it")  # fmt: skip
