@@ -407,6 +407,13 @@ def test_a_changed_copy_of_the_tracking_config_set_mid_sequence_is_taken_as_it_i
     tracker.config = replace(TrackerConfig(), robust_c=4.0)  # the user's 3 levels: the added one kept
     assert tracker.tracking_config.num_levels == 4 and tracker.tracking_config.robust_c == 4.0
     assert bool(tracker(frames[2:3]).success.all())
+    # fewer levels than that: the one added is all "auto" adds (two were added, without a word)
+    before = tracker.state
+    tracker.config = replace(TrackerConfig(), num_levels=2, iterations=(6, 5))
+    with pytest.raises(ValueError, match=r"4 pyramid levels, the config has num_levels = 2 and pyramid='auto' adds "
+                                         r"the 1 coarser level\(s\) initialise added .* a config of 3 levels"):
+        tracker(frames[3:4])
+    assert tracker.state is before
     # where initialise added none, a config of other levels is refused as before
     tracker = FaceTracker(model=model, refine_first=None, pyramid="config")
     tracker.initialise(frames[:1], lm[None])
@@ -414,6 +421,26 @@ def test_a_changed_copy_of_the_tracking_config_set_mid_sequence_is_taken_as_it_i
     assert tracker.tracking_config is tracker.config
     with pytest.raises(ValueError, match="the state holds templates for 3 pyramid levels"):
         tracker(frames[1:2])
+
+
+def test_a_config_of_fewer_levels_set_mid_sequence_is_refused_with_pyramid_auto_too(model, three_streams):
+    """``pyramid="auto"`` re-adds to a config set mid-sequence the coarser levels initialise added for large faces,
+    and no more: a 1-level config on a 2-level sequence (small faces: none added) was tracked with 2 levels, the
+    coarsest's iterations repeated (``(4, 4)``), without a word. It is refused as with ``pyramid="config"``, and the
+    sequence goes on as before once a config of its levels is set again."""
+    from dataclasses import replace
+
+    frames, lm = three_streams
+    tracker = FaceTracker(CFG, model, refine_first=None)
+    tracker.initialise(frames[:, 0], lm)
+    fork = copy.deepcopy(tracker)
+    assert tracker.state.num_levels == 2 and tracker.tracking_config is CFG
+    tracker.config = replace(CFG, num_levels=1, iterations=(4,))
+    assert tracker.tracking_config.num_levels == 1
+    with pytest.raises(ValueError, match="the state holds templates for 2 pyramid levels, the config has num_levels = 1"):
+        tracker(frames[:, 1])
+    tracker.config = replace(CFG, robust_c=CFG.robust_c)  # (another object, the same settings)
+    assert_same(fork(frames[:, 1]), tracker(frames[:, 1]))
 
 
 # ----------------------------------------------------------------------------------------------- missing landmarks

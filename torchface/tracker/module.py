@@ -110,6 +110,7 @@ class FaceTracker(DeviceCheckedModule):
     #: (class defaults: for trackers pickled before these attributes existed)
     pyramid: str = "auto"
     _tracking: "tuple[TrackerConfig, TrackerConfig] | None" = None
+    _added_levels: int | None = None
 
     def __init__(
         self, config: TrackerConfig | None = None, model: FaceModel | None = None,
@@ -128,6 +129,7 @@ class FaceTracker(DeviceCheckedModule):
         self._state: TrackerState | None = None
         # (config, the config the sequence is tracked with): the levels pyramid="auto" added at initialise
         self._tracking: tuple[TrackerConfig, TrackerConfig] | None = None
+        self._added_levels: int | None = None  # the coarser levels pyramid="auto" added at initialise (None: unknown)
         self._dropped: str | None = None  # why the state was forgotten (a move, a load), for the next step's error
 
     def __setattr__(self, name: str, value: Any) -> None:
@@ -185,7 +187,10 @@ class FaceTracker(DeviceCheckedModule):
         ``pyramid="auto"`` added at :meth:`initialise` for large faces (its ``num_levels`` is the state's
         :attr:`~torchface.tracker.TrackerState.num_levels`); None before :meth:`initialise`. A config set
         mid-sequence gets the levels the state holds beyond it with ``pyramid="auto"`` (so a changed copy of this
-        one is taken as it is), none with ``"config"``.
+        one is taken as it is), at most as many as :meth:`initialise` added for large faces, none with
+        ``"config"``: one of other levels (``num_levels=2`` on a 3-level sequence that ``"auto"`` added none to) is
+        refused at the next step, as with ``"config"`` (it was tracked with the state's 3 levels, the coarsest's
+        iterations repeated, without a word).
 
         Example:
             >>> tracker.initialise(frames, landmarks)        # 1280x720, a 380-pixel face  # doctest: +SKIP
@@ -199,6 +204,8 @@ class FaceTracker(DeviceCheckedModule):
             # as training_hooks continues a state; counted from the state: a config of the state's levels, e.g. a
             # changed tracking_config, got the added levels again, 5 for a 4-level state, and every step failed)
             extra = self._state.num_levels - self.config.num_levels if self.pyramid == "auto" else 0
+            if self._added_levels is not None:  # only those initialise added (unknown: a tracker pickled before)
+                extra = min(extra, self._added_levels)
             run = add_coarser_levels(self.config, max(0, extra))
             self._tracking = (self.config, run)
         return run
@@ -208,6 +215,7 @@ class FaceTracker(DeviceCheckedModule):
         self._state = None
         self._dropped = None
         self._tracking = None
+        self._added_levels = None
 
     def select(self, index: Sequence[int] | Tensor) -> "FaceTracker":
         """Keep only streams ``index`` (``(B',)`` stream indices, int64 or a list, in the order wanted; or a ``(B,)``
@@ -337,6 +345,7 @@ class FaceTracker(DeviceCheckedModule):
         self._state = None  # a failed initialisation must not leave the previous video's state to track on
         self._dropped = None
         self._tracking = None
+        self._added_levels = None
         config = self.config
         if self.pyramid == "auto":  # (the inputs checked first: their errors stay those of initialise_managed)
             check_initialise_inputs(self.model, config, frames, landmarks_px, intrinsics, weights)
@@ -345,6 +354,7 @@ class FaceTracker(DeviceCheckedModule):
             self.model, config, frames, landmarks_px, intrinsics, weights, fit=fit, refine_first=refine
         )
         self._tracking = (self.config, config)
+        self._added_levels = config.num_levels - self.config.num_levels
         return result
 
     @torch.no_grad()
@@ -362,6 +372,15 @@ class FaceTracker(DeviceCheckedModule):
             raise RuntimeError(f"call initialise(frames, landmarks) before tracking{self._why_none()}")
         config = self.tracking_config
         assert config is not None
+        levels, added = self._state.num_levels, config.num_levels - self.config.num_levels
+        if added and config.num_levels != levels:  # (check_state_levels would name the config's levels with those
+            # pyramid="auto" added, which the user did not set)
+            raise ValueError(
+                f"the state holds templates for {levels} pyramid levels, the config has num_levels = "
+                f"{self.config.num_levels} and pyramid='auto' adds the {added} coarser level(s) initialise added for "
+                f"large faces: set a config of {levels - added} levels (or a changed copy of tracking_config), or "
+                "initialise again"
+            )
         self._state, result = managed_step(self.model, config, self._state, frames, self.detector, donate=True)
         return result
 
