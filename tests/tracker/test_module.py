@@ -443,6 +443,44 @@ def test_a_config_of_fewer_levels_set_mid_sequence_is_refused_with_pyramid_auto_
     assert_same(fork(frames[:, 1]), tracker(frames[:, 1]))
 
 
+def test_settings_fixed_at_initialise_set_mid_sequence_warn_and_wait_for_the_next_initialise(model, turn_and_still):
+    """``max_points``, ``template.normalised_size`` and ``template.dissimilarity`` are what the state's templates,
+    mosaic slots, normalised faces and reference patches are made with (INITIALISE_SETTINGS). Changed mid-sequence,
+    the first two were ignored without a word, and a changed ``num_patches`` failed at the next mosaic entry (a
+    RuntimeError of tensor shapes, the 30 degree entry here). The assignment warns, naming them, and the sequence
+    goes on exactly as with its own settings (``tracking_config`` holds them), until the next initialise takes the
+    new ones; other settings take effect at once, without a warning."""
+    import warnings
+    from dataclasses import replace
+
+    frames, lm = turn_and_still
+    tracker = FaceTracker(CFG, model, refine_first=None)
+    tracker.initialise(frames[:, 0], lm)
+    fork = copy.deepcopy(tracker)
+    tc = CFG.template
+    changed = replace(CFG, max_points=300, template=replace(
+        tc, normalised_size=96, dissimilarity=replace(tc.dissimilarity, num_patches=8)))  # fmt: skip
+    with pytest.warns(UserWarning, match=r"changes max_points \(600 -> 300\), template.normalised_size \(64 -> 96\), "
+                                         r"template.dissimilarity.num_patches \(16 -> 8\): settings the tracked "
+                                         r"sequence keeps from its initialise"):  # fmt: skip
+        tracker.config = changed
+    run = tracker.tracking_config
+    assert run.max_points == 600 and run.template.normalised_size == 64 and run.template.dissimilarity.num_patches == 16
+    entries = []
+    for t in [*range(1, frames.shape[1]), frames.shape[1] - 1]:  # (the last frame twice: its entry is aligned on)
+        want, got = fork(frames[:, t]), tracker(frames[:, t])
+        assert_same(want, got)
+        entries.append(int(got.mosaic_entry[0]))
+    assert entries[-1] > 0  # (a mosaic entry was added, and aligned against: made with the sequence's patches)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        tracker.initialise(frames[:, 0], lm)  # the new settings from here
+        assert tracker.tracking_config is tracker.config
+        assert tracker.state.management.layout.size == 96 and tracker.state.templates[0].points.shape[1] == 300
+        tracker.config = replace(changed, robust_c=5.0)  # (those settings as initialised: no warning)
+        assert tracker.tracking_config.robust_c == 5.0
+
+
 # ----------------------------------------------------------------------------------------------- missing landmarks
 
 

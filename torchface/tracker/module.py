@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import dataclasses
 import warnings
 from collections.abc import Mapping, Sequence
 from typing import Any
@@ -32,6 +33,40 @@ _SETTINGS = frozenset({"config", "model", "detector", "refine_first", "pyramid"}
 #: :meth:`~FaceTracker.initialise` (:func:`~torchface.tracker.step.pyramid_for_faces`), ``"config"`` keeps
 #: ``config.num_levels``.
 PYRAMID_CHOICES: tuple[str, ...] = ("auto", "config")
+
+
+#: The settings a tracked sequence keeps from its :meth:`~FaceTracker.initialise`: its first templates and mosaic
+#: slots (``max_points``), the normalised face its confidence is measured on (``template.normalised_size``) and its
+#: reference's fiducial patches (``template.dissimilarity``) are made with them. A config set mid-sequence that
+#: changes one is tracked with the sequence's own, with a warning, until the next ``initialise`` (a changed
+#: ``normalised_size`` or ``max_points`` was ignored without a word, a changed ``patch_size`` or ``num_patches`` failed
+#: at the next mosaic entry with a RuntimeError of tensor shapes).
+INITIALISE_SETTINGS: tuple[str, ...] = ("max_points", "template.normalised_size", "template.dissimilarity")
+
+
+def initialise_settings_changed(started: TrackerConfig, config: TrackerConfig) -> list[str]:
+    """Which of :data:`INITIALISE_SETTINGS` ``config`` changes from ``started`` (the config a sequence was started
+    with), each as ``"name (old -> new)"`` (a field of ``template.dissimilarity`` by its own name)."""
+    changed = []
+    if config.max_points != started.max_points:
+        changed.append(f"max_points ({started.max_points} -> {config.max_points})")
+    if config.template.normalised_size != started.template.normalised_size:
+        changed.append(f"template.normalised_size ({started.template.normalised_size} -> "
+                       f"{config.template.normalised_size})")  # fmt: skip
+    old, new = started.template.dissimilarity, config.template.dissimilarity
+    for f in dataclasses.fields(old):
+        if getattr(old, f.name) != getattr(new, f.name):
+            changed.append(f"template.dissimilarity.{f.name} ({getattr(old, f.name)!r} -> {getattr(new, f.name)!r})")
+    return changed
+
+
+def keep_initialise_settings(started: TrackerConfig, config: TrackerConfig) -> TrackerConfig:
+    """``config`` with the :data:`INITIALISE_SETTINGS` of ``started`` (``config`` itself where they are the same)."""
+    if not initialise_settings_changed(started, config):
+        return config
+    template = dataclasses.replace(config.template, normalised_size=started.template.normalised_size,
+                                   dissimilarity=started.template.dissimilarity)  # fmt: skip
+    return dataclasses.replace(config, max_points=started.max_points, template=template)
 
 
 def check_pyramid(pyramid: object) -> None:
@@ -111,6 +146,7 @@ class FaceTracker(DeviceCheckedModule):
     pyramid: str = "auto"
     _tracking: "tuple[TrackerConfig, TrackerConfig] | None" = None
     _added_levels: int | None = None
+    _started: TrackerConfig | None = None
 
     def __init__(
         self, config: TrackerConfig | None = None, model: FaceModel | None = None,
@@ -130,6 +166,7 @@ class FaceTracker(DeviceCheckedModule):
         # (config, the config the sequence is tracked with): the levels pyramid="auto" added at initialise
         self._tracking: tuple[TrackerConfig, TrackerConfig] | None = None
         self._added_levels: int | None = None  # the coarser levels pyramid="auto" added at initialise (None: unknown)
+        self._started: TrackerConfig | None = None  # the config the sequence was initialised with (None: unknown)
         self._dropped: str | None = None  # why the state was forgotten (a move, a load), for the next step's error
 
     def __setattr__(self, name: str, value: Any) -> None:
@@ -138,6 +175,16 @@ class FaceTracker(DeviceCheckedModule):
         loss, with a shape error, a dict config at the next step with an AttributeError)."""
         if name in _SETTINGS:
             _check_setting(name, value)
+        started = self.__dict__.get("_started")
+        if name == "config" and started is not None and self.__dict__.get("_state") is not None:
+            changed = initialise_settings_changed(started, value)
+            if changed:  # (its templates, mosaic and normalised faces are made with them)
+                warnings.warn(
+                    f"FaceTracker: the config set mid-sequence changes {', '.join(changed)}: settings the tracked "
+                    "sequence keeps from its initialise (its templates and normalised faces are made with them), so "
+                    "it goes on with the old values until the next initialise (tracking_config holds them)",
+                    UserWarning, stacklevel=2,
+                )  # fmt: skip
         super().__setattr__(name, value)
 
     def to(self, *args, **kwargs) -> "FaceTracker":  # type: ignore[override]
@@ -190,7 +237,8 @@ class FaceTracker(DeviceCheckedModule):
         one is taken as it is), at most as many as :meth:`initialise` added for large faces, none with
         ``"config"``: one of other levels (``num_levels=2`` on a 3-level sequence that ``"auto"`` added none to) is
         refused at the next step, as with ``"config"`` (it was tracked with the state's 3 levels, the coarsest's
-        iterations repeated, without a word).
+        iterations repeated, without a word). It keeps the sequence's :data:`INITIALISE_SETTINGS` until the next
+        :meth:`initialise` (the assignment warns where it changes them).
 
         Example:
             >>> tracker.initialise(frames, landmarks)        # 1280x720, a 380-pixel face  # doctest: +SKIP
@@ -207,6 +255,8 @@ class FaceTracker(DeviceCheckedModule):
             if self._added_levels is not None:  # only those initialise added (unknown: a tracker pickled before)
                 extra = min(extra, self._added_levels)
             run = add_coarser_levels(self.config, max(0, extra))
+            if self._started is not None:  # (INITIALISE_SETTINGS: the sequence's own, as the state is made with them)
+                run = keep_initialise_settings(self._started, run)
             self._tracking = (self.config, run)
         return run
 
@@ -216,6 +266,7 @@ class FaceTracker(DeviceCheckedModule):
         self._dropped = None
         self._tracking = None
         self._added_levels = None
+        self._started = None
 
     def select(self, index: Sequence[int] | Tensor) -> "FaceTracker":
         """Keep only streams ``index`` (``(B',)`` stream indices, int64 or a list, in the order wanted; or a ``(B,)``
@@ -346,6 +397,7 @@ class FaceTracker(DeviceCheckedModule):
         self._dropped = None
         self._tracking = None
         self._added_levels = None
+        self._started = None
         config = self.config
         if self.pyramid == "auto":  # (the inputs checked first: their errors stay those of initialise_managed)
             check_initialise_inputs(self.model, config, frames, landmarks_px, intrinsics, weights)
@@ -355,6 +407,7 @@ class FaceTracker(DeviceCheckedModule):
         )
         self._tracking = (self.config, config)
         self._added_levels = config.num_levels - self.config.num_levels
+        self._started = config
         return result
 
     @torch.no_grad()
