@@ -794,6 +794,19 @@ class NormalisedFace(DeviceCheckedModule):
         self.depth_tolerance, self.min_facing_cos = float(tolerance), float(facing)
         self.keep_expression = check_bool(keep_expression, "keep_expression")
 
+    def __setattr__(self, name: str, value: object) -> None:
+        """Attribute assignment, ``keep_expression``, ``depth_tolerance`` and ``min_facing_cos`` checked as the
+        constructor checks them (as :class:`~torchface.tracker.FaceTracker` checks its settings): set after
+        construction they were taken as given, ``keep_expression = "no"`` keeping the expression, a tolerance of
+        ``"5"`` failing at the next call. A refused value leaves the setting as it was."""
+        if name == "keep_expression":
+            value = check_bool(value, name)
+        elif name == "depth_tolerance":
+            value = float(_check_visibility_settings(value, DEFAULT_MIN_FACING_COS)[0])
+        elif name == "min_facing_cos":
+            value = float(_check_visibility_settings(0.0, value)[1])
+        super().__setattr__(name, value)
+
     def _apply(self, fn: Callable[[Tensor], Tensor], recurse: bool = True) -> "NormalisedFace":
         """Move the face model and the layout with the module (``.to``, ``.double``, ``.float``, ``.cuda``, ...)."""
         self.model, self.layout = apply_to_model_and_layout(fn, self.model, self.layout)
