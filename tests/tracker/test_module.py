@@ -437,7 +437,8 @@ def test_a_config_of_fewer_levels_set_mid_sequence_is_refused_with_pyramid_auto_
     assert tracker.state.num_levels == 2 and tracker.tracking_config is CFG
     tracker.config = replace(CFG, num_levels=1, iterations=(4,))
     assert tracker.tracking_config.num_levels == 1
-    with pytest.raises(ValueError, match="the state holds templates for 2 pyramid levels, the config has num_levels = 1"):
+    with pytest.raises(ValueError, match="the state holds templates for 2 pyramid levels, the config has num_levels = "
+                                         "1"):  # fmt: skip
         tracker(frames[:, 1])
     tracker.config = replace(CFG, robust_c=CFG.robust_c)  # (another object, the same settings)
     assert_same(fork(frames[:, 1]), tracker(frames[:, 1]))

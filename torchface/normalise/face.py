@@ -54,7 +54,7 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, NamedTuple, TypeVar
+from typing import TYPE_CHECKING, Any, NamedTuple, TypeVar
 
 import torch
 from torch import Tensor
@@ -794,7 +794,7 @@ class NormalisedFace(DeviceCheckedModule):
         self.depth_tolerance, self.min_facing_cos = float(tolerance), float(facing)
         self.keep_expression = check_bool(keep_expression, "keep_expression")
 
-    def __setattr__(self, name: str, value: object) -> None:
+    def __setattr__(self, name: str, value: Any) -> None:
         """Attribute assignment, ``keep_expression``, ``depth_tolerance`` and ``min_facing_cos`` checked as the
         constructor checks them (as :class:`~torchface.tracker.FaceTracker` checks its settings): set after
         construction they were taken as given, ``keep_expression = "no"`` keeping the expression, a tolerance of

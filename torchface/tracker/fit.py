@@ -56,11 +56,11 @@ class FitConfig:
         held_shape_units: names (a tuple or list) of the shape units whose precision is ``held_shape_precision``
             instead. From one frontal view the units that move features vertically trade with the head's pitch, and
             2 px of landmark noise then tips the pose by up to 2.75 degrees (8 draws; 6.41 with a starting
-            expression); held, 1.42 (1.46). None: :data:`CANDIDE3_VERTICAL_UNITS`, those of them the model has (none for a
-            model without those names); ``()``: none. Names given must be the model's (:func:`fit_landmarks`
-            checks). The online look-ahead start lets these units go again once the head has turned
-            (:class:`~torchface.tracker.lookahead.LookaheadConfig`), since a side view separates them from the
-            pitch.
+            expression); held, 1.42 (1.46). None: :data:`CANDIDE3_VERTICAL_UNITS`, those of them the model has
+            (none for a model without those names); ``()``: none. Names given must be the model's
+            (:func:`fit_landmarks` checks). The online look-ahead start lets these units go again once the head has
+            turned (:class:`~torchface.tracker.lookahead.LookaheadConfig`), since a side view separates them from
+            the pitch.
         held_shape_precision: the precision of ``held_shape_units`` (at ``reference_focal_px``, as every
             precision here).
         shape_bound: shape coefficients are kept in ``[-shape_bound, shape_bound]``.

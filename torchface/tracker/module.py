@@ -129,8 +129,9 @@ class FaceTracker(DeviceCheckedModule):
     Saving: the tracker has no learnable parameters, so ``state_dict()`` is empty (it holds a detector's weights
     where the detector is an ``nn.Module``) and holds no tracked sequence; ``load_state_dict`` therefore forgets the
     tracker's sequence, as :meth:`reset` does (the next step says so), so that a loaded checkpoint never continues
-    the sequence the tracker held before; a load that fails leaves the tracker as it was. To checkpoint a tracker mid-stream, ``torch.save(tracker, path)`` (or
-    pickle it) and load it with ``torch.load(path, weights_only=False)`` (trusted files only);
+    the sequence the tracker held before; a load that fails leaves the tracker as it was. To checkpoint a tracker
+    mid-stream, ``torch.save(tracker, path)`` (or pickle it) and load it with ``torch.load(path,
+    weights_only=False)`` (trusted files only);
     ``copy.deepcopy(tracker)`` forks a stream, and so does ``copy.copy(tracker)``, which shares the model, config
     and detector but not the tracked state. Each continues exactly as the original would, independently of it.
     :meth:`select` keeps some of the streams (e.g. drops those whose videos have ended).
