@@ -10,6 +10,7 @@ called on meta tensors" from the model's checks for ``"meta"``).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any, TypeVar
 
 import torch
@@ -19,7 +20,7 @@ _Module = TypeVar("_Module", bound="DeviceCheckedModule")
 
 __all__ = [
     "DeviceCheckedModule", "available_devices", "check_cuda_device", "check_device", "check_holds_data",
-    "check_to_arguments", "check_to_device",
+    "check_to_arguments", "check_to_device", "tensor_mover",
 ]
 
 
@@ -147,6 +148,9 @@ def check_to_arguments(
         >>> check_to_arguments("cpu", torch.float32)
         (device(type='cpu'), torch.float32)
     """
+    if isinstance(dtype, bool):  # (Tensor.to(dtype, non_blocking): the flags follow a dtype given first there)
+        raise TypeError(f".to takes a device, then a dtype: got {dtype!r} for the dtype (non_blocking= and copy= "
+                        "by keyword)")  # fmt: skip
     if isinstance(device, torch.dtype):  # (.to(torch.float64), as Tensor.to and nn.Module.to take it)
         if dtype is not None:
             raise TypeError(f".to takes a device, then a dtype: got two dtypes, {device} and {dtype}")
@@ -160,6 +164,36 @@ def check_to_arguments(
     if dtype is not None and (not isinstance(dtype, torch.dtype) or not dtype.is_floating_point):
         raise TypeError(f"dtype must be a floating torch.dtype or None (the integer fields keep theirs), got {dtype!r}")
     return check_device(device), dtype
+
+
+def tensor_mover(
+    device: torch.device | str | int | torch.dtype | None = None, dtype: torch.dtype | None = None,
+    non_blocking: bool = False, copy: bool = False,
+) -> Callable[[torch.Tensor], torch.Tensor]:
+    """What the ``.to`` of a frozen dataclass of tensors (``TrackResult``, ``LandmarkFit``, ``NormalisedFaceLayout``,
+    ``TexturedMesh``, ``LightState``) does to each of its tensors: ``Tensor.to(device, dtype, non_blocking=...,
+    copy=...)``, the dtype for the floating tensors alone (integer and bool ones keep theirs). ``device`` and
+    ``dtype`` are read by :func:`check_to_arguments`; ``non_blocking`` and ``copy`` are bools, as ``Tensor.to``
+    takes them: ``copy=True`` copies every tensor (none is shared with the original), ``non_blocking=True`` lets a
+    copy between the CPU and a GPU run asynchronously (values copied to the CPU are to be read after a
+    ``torch.cuda.synchronize()``, as ``Tensor.to``'s are). They were refused ("got an unexpected keyword argument
+    'non_blocking'") although the docs say these ``.to`` take their arguments as ``Tensor.to`` does.
+
+    Example:
+        >>> move = tensor_mover(torch.float64, copy=True)
+        >>> move(torch.zeros(2)).dtype, move(torch.zeros(2, dtype=torch.int64)).dtype
+        (torch.float64, torch.int64)
+    """
+    device, dtype = check_to_arguments(device, dtype)  # (a device not here: a ValueError naming those here)
+    for name, flag in (("non_blocking", non_blocking), ("copy", copy)):
+        if not isinstance(flag, bool):  # (torch's own: "argument 'non_blocking' must be bool, not int")
+            raise TypeError(f"{name} must be a bool, as Tensor.to takes it, got {type(flag).__name__} {flag!r}")
+
+    def move(t: torch.Tensor) -> torch.Tensor:
+        return t.to(device=device, dtype=dtype if t.is_floating_point() else None, non_blocking=non_blocking,
+                    copy=copy)  # fmt: skip
+
+    return move
 
 
 def check_cuda_device(device: torch.device | str | int | None) -> None:

@@ -1090,3 +1090,24 @@ def test_z_buffered_face_from_the_coverage_equals_every_pixels_fragments(model, 
         # The far side is hidden by the z-buffer itself, not only by the facing tests.
         facing = normalised_face(frames, m, lay, sigma, alpha, aa, t, illum, CAM, zbuffer=False)
         assert float(facing.mask[1:3].sum()) > float(ref.mask[1:3].sum())
+
+
+def test_settings_assigned_after_construction_are_checked(model):
+    """``keep_expression``, ``depth_tolerance`` and ``min_facing_cos`` assigned to a ``NormalisedFace`` are checked
+    as the constructor checks them (as ``FaceTracker`` checks its settings): ``keep_expression = "no"`` was taken as
+    given, and kept the expression (a non-empty string is true). A refused value leaves the setting as it was; a good
+    one is taken (a NumPy bool as a bool)."""
+    normaliser = NormalisedFace(model, size=32)
+    for name, bad, error, message in (
+        ("keep_expression", "no", TypeError, "keep_expression must be a bool, got str 'no'"),
+        ("keep_expression", 1, TypeError, "keep_expression must be a bool, got int 1"),
+        ("depth_tolerance", "5", TypeError, "depth_tolerance must be a real number"),
+        ("depth_tolerance", -0.1, ValueError, "depth_tolerance"),
+        ("min_facing_cos", 1.0, ValueError, r"min_facing_cos must be in \[0, 1\)"),
+    ):
+        before = getattr(normaliser, name)
+        with pytest.raises(error, match=message):
+            setattr(normaliser, name, bad)
+        assert getattr(normaliser, name) == before, name
+    normaliser.keep_expression, normaliser.depth_tolerance, normaliser.min_facing_cos = np.bool_(True), 0.1, 0.3
+    assert normaliser.keep_expression is True and normaliser.depth_tolerance == 0.1 and normaliser.min_facing_cos == 0.3

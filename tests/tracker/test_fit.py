@@ -213,9 +213,16 @@ def test_held_shape_units(model):
     )
     with pytest.raises(ValueError, match="not among"):
         fit_landmarks(model, noisy, CAM, config=FitConfig(held_shape_units=("Nose length",)))
-    for bad in (["Mouth width"], ("Mouth width", "Mouth width"), (3,)):
-        with pytest.raises(ValueError, match="held_shape_units"):
-            FitConfig(held_shape_units=bad)
+    # A list is taken as a tuple and a wrong type is a TypeError, as by the other tuple settings (a list was refused,
+    # with a ValueError, as a wrong type was): check_names.
+    assert FitConfig(held_shape_units=["Mouth width"]) == FitConfig(held_shape_units=("Mouth width",))
+    assert FitConfig(held_shape_units=np.array(["Mouth width"])).held_shape_units == ("Mouth width",)
+    with pytest.raises(ValueError, match=r"held_shape_units must name each unit once, got \['Mouth width'\]"):
+        FitConfig(held_shape_units=("Mouth width", "Mouth width"))
+    for bad, message in (((3,), r"held_shape_units\[0\] must be a unit name \(a str\), got int 3"),
+                         ("Mouth width", r"None or a tuple of unit names, got str 'Mouth width' \(one unit: ")):
+        with pytest.raises(TypeError, match=message):
+            FitConfig(held_shape_units=bad)  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="held_shape_precision must be a finite number >= 0, got -1.0"):
         FitConfig(held_shape_precision=-1.0)
 
@@ -470,12 +477,42 @@ def test_fit_select_and_to(model):
     """``LandmarkFit.select`` keeps the chosen streams of every field; ``to`` casts the floating fields only."""
     R, t = poses()
     fit = fit_landmarks(model, project_landmarks(model, R, t), CAM)
-    one = fit.select(slice(1, 2))
+    one = fit.select([1])
     for f in LandmarkFit.__dataclass_fields__:
         assert torch.equal(getattr(one, f), getattr(fit, f)[1:2])
     low = fit.to(dtype=torch.float32)
     assert low.rotation.dtype == torch.float32 and low.status.dtype == torch.int64
     torch.testing.assert_close(low.translation, fit.translation.float(), rtol=0, atol=0)
+
+
+def test_fit_select_reads_indices_as_the_other_selects(model):
+    """``LandmarkFit.select`` reads its index as ``TrackResult.select`` does (``stream_index``): indices in the order
+    asked, a bool mask, negative indices from the end, while an int (or a 0-d integer tensor) still drops the batch
+    dimension. None added a dimension (``(1, B, 3, 3)``), an index out of range was torch's bare IndexError "index 3
+    is out of bounds for dimension 0 with size 2", a uint8 tensor was a mask: they are the other selects' errors. A
+    fit already without its batch dimension is refused (its rotation's rows were taken for streams)."""
+    R, t = poses()
+    fit = fit_landmarks(model, project_landmarks(model, R, t), CAM)
+    B = fit.status.shape[0]
+    for index, rows in (([1, 0], [1, 0]), (torch.tensor([False, True, False]), [1]), ([-1], [B - 1]), ([], [])):
+        part = fit.select(index)
+        for f in LandmarkFit.__dataclass_fields__:
+            assert torch.equal(getattr(part, f), getattr(fit, f)[rows]), (index, f)
+    for index, row in ((1, 1), (-1, B - 1), (torch.tensor(1), 1), (np.int64(1), 1)):
+        part = fit.select(index)  # type: ignore[arg-type]
+        assert part.rotation.shape == (3, 3) and torch.equal(part.rotation, fit.rotation[row]), index
+    for bad in (None, slice(0, 1), {0, 1}, "0"):
+        with pytest.raises(TypeError, match=rf"index must be stream indices .* or a \({B},\) bool mask, got"):
+            fit.select(bad)  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match="uint8"):
+        fit.select(torch.tensor([1, 0, 1], dtype=torch.uint8))
+    for bad in ([B], B, -B - 1):
+        with pytest.raises(IndexError, match=f"stream index out of range for {B} streams"):
+            fit.select(bad)  # type: ignore[arg-type]
+    with pytest.raises(IndexError, match=f"a stream mask must have {B} values"):
+        fit.select(torch.tensor([True]))
+    with pytest.raises(ValueError, match="one stream's, without its batch dimension"):
+        fit.select(0).select(0)
 
 
 def test_four_landmarks_fit_the_pose(model):

@@ -193,9 +193,13 @@ def test_kept_shape_units_stay_at_the_landmark_fits_values(model):
     others = torch.ones(model.num_shape, dtype=torch.bool)
     others[[eyes, nose]] = False
     assert torch.equal(kept[others], shape[0, others])
-    for bad in (["Eyes vertical position"], ("a", "a"), (1,)):
-        with pytest.raises(ValueError, match="kept_shape_units"):
-            LookaheadConfig(kept_shape_units=bad)
+    # (a list is taken, as by FitConfig.held_shape_units and the other tuple settings; a wrong type a TypeError)
+    assert LookaheadConfig(kept_shape_units=["Eyes vertical position"]).kept_shape_units == ("Eyes vertical position",)
+    with pytest.raises(ValueError, match="kept_shape_units must name each unit once"):
+        LookaheadConfig(kept_shape_units=("a", "a"))
+    for bad in ((1,), "Eyes vertical position", None):
+        with pytest.raises(TypeError, match="kept_shape_units"):
+            LookaheadConfig(kept_shape_units=bad)  # type: ignore[arg-type]
     with pytest.raises(ValueError, match=r"kept_shape_units \['Eyes vertical positon'\] are not among"):
         refine_first_fit(model, frames, gt.intrinsics, lm, start, R[1:], gt.translation[1:].float(),
                          config=LookaheadConfig(kept_shape_units=("Eyes vertical positon",)))  # a misspelt name
@@ -428,7 +432,7 @@ def test_lookahead_fit_finds_the_turns_and_refines_each_stream(model):
     torch.testing.assert_close(fit.rotation[1:], plain.rotation, rtol=0, atol=1e-6)  # one keyframe: not refined
     one, _ = lookahead_fit(model, CFG, both[1:], lm, gt.intrinsics, config=replace(cfg, min_keyframes=1))
     assert float(geodesic_angle_deg(one.rotation.double(), plain.rotation.double())) > 0.1  # refined
-    state, first = initialise(model, CFG, frames[:1], lm, gt.intrinsics, fit=fit.select(slice(0, 1)))
+    state, first = initialise(model, CFG, frames[:1], lm, gt.intrinsics, fit=fit.select([0]))
     torch.testing.assert_close(first.rotation, fit.rotation[:1], rtol=0, atol=1e-6)
     torch.testing.assert_close(state.shape_coeffs, fit.shape_coeffs[:1], rtol=0, atol=0)
 

@@ -249,6 +249,36 @@ def test_load_state_dict_forgets_the_tracked_sequence(model, three_streams):
     FaceTracker(CFG, model, detector=_NoFaces()).load_state_dict(with_net.state_dict())
 
 
+def test_a_failed_load_state_dict_leaves_the_tracker_as_it_was(model, three_streams):
+    """``load_state_dict`` that fails (an unexpected key, a missing or resized detector weight) raises torch's
+    RuntimeError and changes nothing: the tracker forgot its sequence before torch raised (the next step said "a
+    state_dict was loaded"), and torch had copied the detector weights that matched. The tracker tracks on exactly as
+    a copy made before the failed load; ``strict=False`` still loads and forgets."""
+    frames, lm = three_streams
+    tracker = FaceTracker(CFG, model, detector=_NoFaces(), refine_first=None)
+    tracker.initialise(frames[:, 0], lm)
+    tracker(frames[:, 1])
+    fork, state = copy.deepcopy(tracker), tracker.state
+    good = {"detector.scale": torch.full((), 2.0)}
+    for bad, message in (
+        ({**good, "x": torch.zeros(1)}, 'Unexpected key.*"x"'),
+        ({"detector.scale": torch.ones(2)}, "size mismatch for detector.scale"),
+        ({}, 'Missing key.*"detector.scale"'),
+    ):
+        with pytest.raises(RuntimeError, match=message):
+            tracker.load_state_dict(bad)
+        assert tracker.state is state and float(tracker.detector.scale) == 1.0
+    plain = FaceTracker(CFG, model, refine_first=None)  # (no weights at all)
+    plain.initialise(frames[:, 0], lm)
+    before = plain.state
+    with pytest.raises(RuntimeError, match='Unexpected key.*"x"'):
+        plain.load_state_dict({"x": torch.zeros(1)})
+    assert plain.state is before
+    assert_same(fork(frames[:, 2]), tracker(frames[:, 2]))
+    tracker.load_state_dict({**good, "x": torch.zeros(1)}, strict=False)
+    assert tracker.state is None and float(tracker.detector.scale) == 2.0
+
+
 def test_a_saved_tracker_goes_on_as_the_original(model, three_streams):
     """The module's documented checkpoint, ``torch.save(tracker)`` mid-stream and ``torch.load(...,
     weights_only=False)``, continues exactly as the original does; the original is not changed by saving."""
@@ -377,6 +407,13 @@ def test_a_changed_copy_of_the_tracking_config_set_mid_sequence_is_taken_as_it_i
     tracker.config = replace(TrackerConfig(), robust_c=4.0)  # the user's 3 levels: the added one kept
     assert tracker.tracking_config.num_levels == 4 and tracker.tracking_config.robust_c == 4.0
     assert bool(tracker(frames[2:3]).success.all())
+    # fewer levels than that: the one added is all "auto" adds (two were added, without a word)
+    before = tracker.state
+    tracker.config = replace(TrackerConfig(), num_levels=2, iterations=(6, 5))
+    with pytest.raises(ValueError, match=r"4 pyramid levels, the config has num_levels = 2 and pyramid='auto' adds "
+                                         r"the 1 coarser level\(s\) initialise added .* a config of 3 levels"):
+        tracker(frames[3:4])
+    assert tracker.state is before
     # where initialise added none, a config of other levels is refused as before
     tracker = FaceTracker(model=model, refine_first=None, pyramid="config")
     tracker.initialise(frames[:1], lm[None])
@@ -384,6 +421,65 @@ def test_a_changed_copy_of_the_tracking_config_set_mid_sequence_is_taken_as_it_i
     assert tracker.tracking_config is tracker.config
     with pytest.raises(ValueError, match="the state holds templates for 3 pyramid levels"):
         tracker(frames[1:2])
+
+
+def test_a_config_of_fewer_levels_set_mid_sequence_is_refused_with_pyramid_auto_too(model, three_streams):
+    """``pyramid="auto"`` re-adds to a config set mid-sequence the coarser levels initialise added for large faces,
+    and no more: a 1-level config on a 2-level sequence (small faces: none added) was tracked with 2 levels, the
+    coarsest's iterations repeated (``(4, 4)``), without a word. It is refused as with ``pyramid="config"``, and the
+    sequence goes on as before once a config of its levels is set again."""
+    from dataclasses import replace
+
+    frames, lm = three_streams
+    tracker = FaceTracker(CFG, model, refine_first=None)
+    tracker.initialise(frames[:, 0], lm)
+    fork = copy.deepcopy(tracker)
+    assert tracker.state.num_levels == 2 and tracker.tracking_config is CFG
+    tracker.config = replace(CFG, num_levels=1, iterations=(4,))
+    assert tracker.tracking_config.num_levels == 1
+    with pytest.raises(ValueError, match="the state holds templates for 2 pyramid levels, the config has num_levels = "
+                                         "1"):  # fmt: skip
+        tracker(frames[:, 1])
+    tracker.config = replace(CFG, robust_c=CFG.robust_c)  # (another object, the same settings)
+    assert_same(fork(frames[:, 1]), tracker(frames[:, 1]))
+
+
+def test_settings_fixed_at_initialise_set_mid_sequence_warn_and_wait_for_the_next_initialise(model, turn_and_still):
+    """``max_points``, ``template.normalised_size`` and ``template.dissimilarity`` are what the state's templates,
+    mosaic slots, normalised faces and reference patches are made with (INITIALISE_SETTINGS). Changed mid-sequence,
+    the first two were ignored without a word, and a changed ``num_patches`` failed at the next mosaic entry (a
+    RuntimeError of tensor shapes, the 30 degree entry here). The assignment warns, naming them, and the sequence
+    goes on exactly as with its own settings (``tracking_config`` holds them), until the next initialise takes the
+    new ones; other settings take effect at once, without a warning."""
+    import warnings
+    from dataclasses import replace
+
+    frames, lm = turn_and_still
+    tracker = FaceTracker(CFG, model, refine_first=None)
+    tracker.initialise(frames[:, 0], lm)
+    fork = copy.deepcopy(tracker)
+    tc = CFG.template
+    changed = replace(CFG, max_points=300, template=replace(
+        tc, normalised_size=96, dissimilarity=replace(tc.dissimilarity, num_patches=8)))  # fmt: skip
+    with pytest.warns(UserWarning, match=r"changes max_points \(600 -> 300\), template.normalised_size \(64 -> 96\), "
+                                         r"template.dissimilarity.num_patches \(16 -> 8\): settings the tracked "
+                                         r"sequence keeps from its initialise"):  # fmt: skip
+        tracker.config = changed
+    run = tracker.tracking_config
+    assert run.max_points == 600 and run.template.normalised_size == 64 and run.template.dissimilarity.num_patches == 16
+    entries = []
+    for t in [*range(1, frames.shape[1]), frames.shape[1] - 1]:  # (the last frame twice: its entry is aligned on)
+        want, got = fork(frames[:, t]), tracker(frames[:, t])
+        assert_same(want, got)
+        entries.append(int(got.mosaic_entry[0]))
+    assert entries[-1] > 0  # (a mosaic entry was added, and aligned against: made with the sequence's patches)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        tracker.initialise(frames[:, 0], lm)  # the new settings from here
+        assert tracker.tracking_config is tracker.config
+        assert tracker.state.management.layout.size == 96 and tracker.state.templates[0].points.shape[1] == 300
+        tracker.config = replace(changed, robust_c=5.0)  # (those settings as initialised: no warning)
+        assert tracker.tracking_config.robust_c == 5.0
 
 
 # ----------------------------------------------------------------------------------------------- missing landmarks

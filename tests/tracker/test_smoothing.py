@@ -550,6 +550,33 @@ def test_result_smoother_timestamps_select_and_reset() -> None:
     assert by_fps.select([]).state.time.shape == (0,) and by_fps._frames.shape == (0,)  # (an empty list: no stream)
 
 
+def test_result_smoother_refuses_calls_with_and_without_timestamps_mixed() -> None:
+    """A call without ``timestamps`` after calls with them counted its frames from 0 (``n / fps``), so every stream's
+    time went back and it restarted without a word (and the other way round jumped from frame counts to a video's
+    times). Mixing is a ValueError saying what to do, which leaves the smoother as it was; ``reset()`` switches."""
+    B, T = 2, 4
+    R = random_rotations(B, T, seed=21)
+    t = torch.zeros(B, T, 3, dtype=D)
+    e = torch.zeros(B, T, 11, dtype=D)
+    ok = torch.ones(B, dtype=torch.bool)
+    stamps = 10.0 + torch.arange(T, dtype=D) / FPS
+    timed, counted = ResultSmoother(fps=FPS), ResultSmoother(fps=FPS)
+    for k in range(T - 1):
+        timed(fake_result(R[:, k], t[:, k], e[:, k], ok), timestamps=stamps[k].expand(B))
+        counted(fake_result(R[:, k], t[:, k], e[:, k], ok))
+    x = fake_result(R[:, -1], t[:, -1], e[:, -1], ok)
+    before = timed.state
+    with pytest.raises(ValueError, match=r"calls were made with timestamps, this one without: give them at every call"):
+        timed(x)
+    with pytest.raises(ValueError, match=r"calls were made without timestamps, this one with: .* or reset\(\)"):
+        counted(x, timestamps=stamps[-1].expand(B))
+    assert timed.state is before
+    smooth = timed(x, timestamps=stamps[-1].expand(B))  # (given again: it goes on)
+    assert not torch.equal(smooth.rotation, x.rotation)  # (filtered, not restarted)
+    counted.reset()
+    assert torch.equal(counted(x, timestamps=stamps[-1].expand(B)).rotation, x.rotation)  # afresh, now timed
+
+
 def test_times_are_checked_under_the_name_they_were_given() -> None:
     """``ResultSmoother``'s ``timestamps`` of the wrong shape were refused as ``time`` (``smooth_result``'s name for
     them), a scalar without saying one per stream is needed; bool times, at any of the three entry points, were

@@ -329,6 +329,52 @@ def test_result_to_takes_what_tensor_to_takes(result):
             target.to(torch.int32)
 
 
+def _tensors(obj) -> dict[str, torch.Tensor]:
+    return {f.name: getattr(obj, f.name) for f in fields(obj) if isinstance(getattr(obj, f.name), torch.Tensor)}
+
+
+def test_the_to_of_results_and_pieces_takes_non_blocking_and_copy(result):
+    """The ``.to`` of ``TrackResult``, ``LandmarkFit``, ``NormalisedFaceLayout``, ``TexturedMesh`` and ``LightState``
+    take ``non_blocking`` and ``copy`` as ``Tensor.to`` does (by keyword, or after the device and dtype): they were
+    refused ("got an unexpected keyword argument 'non_blocking'"), though the docs say they take their arguments
+    as ``Tensor.to`` takes them. ``copy=True`` shares no tensor with the original; without it a tensor already there
+    is shared. The last three also take a dtype first, as the first two did (a TypeError from the device check), and
+    refuse one that is not floating (``LightState.to(dtype=torch.int64)`` truncated the light)."""
+    from torchface.normalise import build_normalised_layout
+    from torchface.rendering import LightState, TexturedMesh
+
+    fit = fit_landmarks(FaceTracker(CFG).model, torch.full((1, 68, 2), float("nan")), Intrinsics.default(W, H))
+    layout = build_normalised_layout(FaceTracker(CFG).model, 16, 0.1)
+    mesh = TexturedMesh(torch.zeros(3, 3), torch.tensor([[0, 1, 2]]), torch.zeros(3, 2), torch.ones(3, 4, 4))
+    light = LightState.ambient_only(torch.ones(2))
+    for obj in (result, fit, layout, mesh, light):
+        name = type(obj).__name__
+        before = _tensors(obj)
+        for moved, shared in (
+            (obj.to("cpu", non_blocking=True), True), (obj.to(device="cpu", copy=True), False),
+            (obj.to("cpu", None, False, True), False), (obj.to(dtype=torch.float32, non_blocking=False), True),
+        ):
+            for key, old in before.items():
+                new = getattr(moved, key)
+                assert new.dtype == old.dtype and torch.equal(new, old), (name, key)
+                if shared:  # (a tensor already there, as Tensor.to returns it)
+                    assert new is old, (name, key)
+                else:
+                    assert new is not old and (not old.numel() or new.data_ptr() != old.data_ptr()), (name, key)
+        doubled = obj.to(torch.float64, copy=True)
+        assert all(getattr(doubled, k).dtype == (torch.float64 if v.is_floating_point() else v.dtype)
+                   for k, v in before.items()), name  # fmt: skip
+        with pytest.raises(TypeError, match="non_blocking must be a bool, as Tensor.to takes it, got int 1"):
+            obj.to("cpu", non_blocking=1)
+        with pytest.raises(TypeError, match="copy must be a bool"):
+            obj.to("cpu", copy="yes")
+        with pytest.raises(TypeError, match=r"got True for the dtype \(non_blocking= and copy= by keyword\)"):
+            obj.to(torch.float64, True)
+        with pytest.raises(TypeError, match="dtype must be a floating torch.dtype"):  # (a light truncated to ints)
+            obj.to(dtype=torch.int64)
+        assert all(v is before[k] for k, v in _tensors(obj).items()), name  # the original unchanged
+
+
 def test_result_to_moves_start_failure_as_an_integer_field(clip):
     """An ``initialise`` result with a ``start_failure`` tensor (one stream started, one without landmarks): ``.to``
     a dtype keeps its int64 codes (and ``status``, ``num_points``) as they are, and a device moves them with the

@@ -316,6 +316,34 @@ def check_reals(values: object, name: str, interval: str | None = None) -> tuple
     return tuple(check_number(v, f"{name}[{i}]", interval) for i, v in enumerate(values))
 
 
+def check_names(values: object, name: str, optional: bool = False) -> tuple[str, ...] | None:
+    """``values`` (a tuple or list of strings, or a 1-D NumPy array of them) as a tuple of distinct names: the rule of
+    the settings that name a model's units (``FitConfig.held_shape_units``, ``LookaheadConfig.kept_shape_units``), as
+    :func:`check_reals` is that of the settings that hold numbers (a list was refused with a ``ValueError``, and so
+    was a wrong type, where the other settings take a list and say ``TypeError``). ``optional``: None is None.
+
+    Raises:
+        TypeError: ``values`` is not a tuple or list (a string would be its characters' names), or an element is not
+            a string.
+        ValueError: a name is given twice.
+    """
+    if values is None and optional:
+        return None
+    if isinstance(values, np.ndarray) and values.ndim == 1:
+        values = values.tolist()
+    if not isinstance(values, (tuple, list)):
+        what = "None or a tuple" if optional else "a tuple"
+        one = f" (one unit: ({values!r},))" if isinstance(values, str) else ""
+        raise TypeError(f"{name} must be {what} of unit names, got {type(values).__name__} {values!r}{one}")
+    for i, v in enumerate(values):
+        if not isinstance(v, str):
+            raise TypeError(f"{name}[{i}] must be a unit name (a str), got {type(v).__name__} {v!r}")
+    twice = sorted({v for v in values if values.count(v) > 1})
+    if twice:
+        raise ValueError(f"{name} must name each unit once, got {twice} more than once in {tuple(values)}")
+    return tuple(str(v) for v in values)
+
+
 def rotation_defects(R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """How far each of ``R`` ``(N, 3, 3)`` is from a rotation: ``(N,)`` the largest entry of ``|R R^T - I|`` and
     ``(N,)`` its determinant (a rotation: 0 and +1; each caller bounds the first by its own tolerance)."""

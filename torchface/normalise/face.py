@@ -54,14 +54,14 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, NamedTuple, TypeVar
+from typing import TYPE_CHECKING, Any, NamedTuple, TypeVar
 
 import torch
 from torch import Tensor
 
 from torchface._autocast import full_precision
 from torchface._compiling import is_compiling
-from torchface._device import DeviceCheckedModule, check_device, check_holds_data
+from torchface._device import DeviceCheckedModule, check_holds_data, tensor_mover
 from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS, remove_illumination
 from torchface.appearance.sampling import sample_at_pixels
 from torchface.backend import Backend, use_native
@@ -180,13 +180,17 @@ class NormalisedFaceLayout:
         self._weights[key] = (faces, weights)  # the faces held too: their id is not reused while the entry lives
         return weights
 
-    def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> "NormalisedFaceLayout":
-        """A copy on ``device`` with the floating tensors in ``dtype`` (index and mask tensors keep theirs)."""
-        device = check_device(device)  # (a device this machine lacks: one ValueError listing those it has)
+    def to(
+        self, device: torch.device | str | int | torch.dtype | None = None, dtype: torch.dtype | None = None,
+        non_blocking: bool = False, copy: bool = False,
+    ) -> "NormalisedFaceLayout":
+        """A copy on ``device`` with the floating tensors in ``dtype`` (index and mask tensors keep theirs), called as
+        ``Tensor.to`` is (``.to(device)``, ``.to(dtype)``, ``.to(device, dtype)``, keywords, ``non_blocking`` and
+        ``copy``: :func:`~torchface._device.tensor_mover`, as ``TrackResult.to``)."""
+        move = tensor_mover(device, dtype, non_blocking, copy)  # (a device this machine lacks: a ValueError)
         return NormalisedFaceLayout(
-            self.size, self.margin, self.intrinsics, self.translation.to(device=device, dtype=dtype), self.num_faces,
-            self.pixel_index.to(device=device), self.face_index.to(device=device),
-            self.bary.to(device=device, dtype=dtype), self.mask.to(device=device),
+            self.size, self.margin, self.intrinsics, move(self.translation), self.num_faces, move(self.pixel_index),
+            move(self.face_index), move(self.bary), move(self.mask),
         )  # fmt: skip
 
 
@@ -789,6 +793,19 @@ class NormalisedFace(DeviceCheckedModule):
         tolerance, facing = _check_visibility_settings(depth_tolerance, min_facing_cos)
         self.depth_tolerance, self.min_facing_cos = float(tolerance), float(facing)
         self.keep_expression = check_bool(keep_expression, "keep_expression")
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        """Attribute assignment, ``keep_expression``, ``depth_tolerance`` and ``min_facing_cos`` checked as the
+        constructor checks them (as :class:`~torchface.tracker.FaceTracker` checks its settings): set after
+        construction they were taken as given, ``keep_expression = "no"`` keeping the expression, a tolerance of
+        ``"5"`` failing at the next call. A refused value leaves the setting as it was."""
+        if name == "keep_expression":
+            value = check_bool(value, name)
+        elif name == "depth_tolerance":
+            value = float(_check_visibility_settings(value, DEFAULT_MIN_FACING_COS)[0])
+        elif name == "min_facing_cos":
+            value = float(_check_visibility_settings(0.0, value)[1])
+        super().__setattr__(name, value)
 
     def _apply(self, fn: Callable[[Tensor], Tensor], recurse: bool = True) -> "NormalisedFace":
         """Move the face model and the layout with the module (``.to``, ``.double``, ``.float``, ``.cuda``, ...)."""

@@ -37,7 +37,7 @@ import torch
 import torch.nn.functional as nnf
 from torch import Tensor, nn
 
-from torchface._device import check_device
+from torchface._device import tensor_mover
 from torchface.geometry.camera import Intrinsics
 from torchface.rendering.rasterizer import Fragments, rasterize
 
@@ -112,15 +112,17 @@ class TexturedMesh:
         """``F``."""
         return int(self.faces.shape[0])
 
-    def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> "TexturedMesh":
-        """A copy on ``device`` with float tensors cast to ``dtype`` (faces stay int64)."""
-        device = check_device(device)  # (a device this machine lacks: one ValueError listing those it has)
-        return TexturedMesh(
-            self.verts.to(device=device, dtype=dtype),
-            self.faces.to(device=device, dtype=torch.int64),
-            self.uv.to(device=device, dtype=dtype),
-            self.texture.to(device=device, dtype=dtype),
-        )
+    def to(
+        self, device: torch.device | str | int | torch.dtype | None = None, dtype: torch.dtype | None = None,
+        non_blocking: bool = False, copy: bool = False,
+    ) -> "TexturedMesh":
+        """A copy on ``device`` with float tensors cast to ``dtype`` (faces int64), called as ``Tensor.to`` is
+        (``.to(device)``, ``.to(dtype)``, ``.to(device, dtype)``, keywords, ``non_blocking`` and ``copy``:
+        :func:`~torchface._device.tensor_mover`, as ``TrackResult.to``). The faces are moved blocking whatever
+        ``non_blocking`` says: the mesh's check reads their values."""
+        move = tensor_mover(device, dtype, non_blocking, copy)  # (a device this machine lacks: a ValueError)
+        faces = tensor_mover(device, None, False, copy)(self.faces).to(torch.int64)
+        return TexturedMesh(move(self.verts), faces, move(self.uv), move(self.texture))
 
 
 @dataclass(frozen=True, eq=False)
@@ -178,14 +180,15 @@ class LightState:
             index = slice(index, index + 1) if index != -1 else slice(-1, None)
         return LightState(self.ambient[index], self.directions[index], self.intensities[index])
 
-    def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> "LightState":
-        """A copy on ``device`` cast to ``dtype``."""
-        device = check_device(device)  # (a device this machine lacks: one ValueError listing those it has)
-        return LightState(
-            self.ambient.to(device=device, dtype=dtype),
-            self.directions.to(device=device, dtype=dtype),
-            self.intensities.to(device=device, dtype=dtype),
-        )
+    def to(
+        self, device: torch.device | str | int | torch.dtype | None = None, dtype: torch.dtype | None = None,
+        non_blocking: bool = False, copy: bool = False,
+    ) -> "LightState":
+        """A copy on ``device`` cast to ``dtype`` (a floating dtype), called as ``Tensor.to`` is (``.to(device)``,
+        ``.to(dtype)``, ``.to(device, dtype)``, keywords, ``non_blocking`` and ``copy``:
+        :func:`~torchface._device.tensor_mover`, as ``TrackResult.to``)."""
+        move = tensor_mover(device, dtype, non_blocking, copy)  # (a device this machine lacks: a ValueError)
+        return LightState(move(self.ambient), move(self.directions), move(self.intensities))
 
 
 class RenderResult(NamedTuple):

@@ -19,12 +19,12 @@ from torch import Tensor
 
 from torchface._autocast import full_precision
 from torchface._compiling import is_compiling
-from torchface._device import check_holds_data, check_to_arguments
+from torchface._device import check_holds_data, tensor_mover
 from torchface.conventions import (
     NORMALISED_CHECK_MIN_SIDE, NORMALISED_LANDMARK_MAX_SPAN, NORMALISED_LANDMARK_RANGE,
 )
 from torchface.geometry._checks import (
-    check_bool, check_int, check_intrinsics, check_number, check_optional_int, check_reals,
+    check_bool, check_int, check_intrinsics, check_names, check_number, check_optional_int, check_reals,
 )
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.projection import pose_projection_jacobian, project_points, project_points_jacobian
@@ -53,14 +53,14 @@ class FitConfig:
             squared pixels of landmark error (at ``reference_focal_px``) per unit coefficient squared: one value
             for every unit, or a tuple of one per unit (its length the model's ``S``; :func:`fit_landmarks` checks
             it). Weak (2) so that the shape fits faces unlike the mean.
-        held_shape_units: names of the shape units whose precision is ``held_shape_precision`` instead. From
-            one frontal view the units that move features vertically trade with the head's pitch, and 2 px of
-            landmark noise then tips the pose by up to 2.75 degrees (8 draws; 6.41 with a starting expression);
-            held, 1.42 (1.46). None: :data:`CANDIDE3_VERTICAL_UNITS`, those of them the model has (none for a
-            model without those names); ``()``: none. Names given must be the model's (:func:`fit_landmarks`
-            checks). The online look-ahead start lets these units go again once the head has turned
-            (:class:`~torchface.tracker.lookahead.LookaheadConfig`), since a side view separates them from the
-            pitch.
+        held_shape_units: names (a tuple or list) of the shape units whose precision is ``held_shape_precision``
+            instead. From one frontal view the units that move features vertically trade with the head's pitch, and
+            2 px of landmark noise then tips the pose by up to 2.75 degrees (8 draws; 6.41 with a starting
+            expression); held, 1.42 (1.46). None: :data:`CANDIDE3_VERTICAL_UNITS`, those of them the model has
+            (none for a model without those names); ``()``: none. Names given must be the model's
+            (:func:`fit_landmarks` checks). The online look-ahead start lets these units go again once the head has
+            turned (:class:`~torchface.tracker.lookahead.LookaheadConfig`), since a side view separates them from
+            the pitch.
         held_shape_precision: the precision of ``held_shape_units`` (at ``reference_focal_px``, as every
             precision here).
         shape_bound: shape coefficients are kept in ``[-shape_bound, shape_bound]``.
@@ -164,10 +164,8 @@ class FitConfig:
         object.__setattr__(self, "max_iterations", check_int(self.max_iterations, "max_iterations", 1))  # 2.5: at the fit
         count = check_optional_int(self.sparse_landmark_count, "sparse_landmark_count", 0)
         object.__setattr__(self, "sparse_landmark_count", count)
-        held = self.held_shape_units
-        if held is not None and (not isinstance(held, tuple) or any(not isinstance(n, str) for n in held)
-                                 or len(set(held)) != len(held)):
-            raise ValueError(f"held_shape_units must be None or a tuple of distinct unit names, got {held!r}")
+        # (a list was a ValueError, as was a wrong type: the other tuple settings take a list, and say TypeError)
+        object.__setattr__(self, "held_shape_units", check_names(self.held_shape_units, "held_shape_units", True))
 
 
 def check_precisions(value: object, name: str) -> float | tuple[float, ...]:
@@ -213,21 +211,38 @@ class LandmarkFit:
     rms_px: Tensor
     status: Tensor
 
-    def select(self, index: int | slice | Tensor) -> "LandmarkFit":
-        """The streams ``index`` (over ``B``; a slice keeps the batch dimension)."""
-        return LandmarkFit(*(getattr(self, f)[index] for f in self.__dataclass_fields__))
+    def select(self, index: int | Sequence[int] | Tensor) -> "LandmarkFit":
+        """The fit of streams ``index``: an int (or a 0-d integer tensor; negative from the end) is one stream's fit
+        without the batch dimension (``rotation (3, 3)``); stream indices (a list or int64 tensor, in the order
+        wanted) or a ``(B,)`` bool mask keep it, ``fit.select([b])`` being stream ``b``'s fit as a batch of one. The
+        indices are read as ``TrackResult.select`` reads them (:func:`~torchface.tracker.step.stream_index`): None, a
+        slice, a set, a uint8 tensor and an index out of range are refused (None added a dimension, a slice was
+        taken, an index out of range was torch's bare IndexError).
+
+        Example:
+            >>> fit.select([1]).rotation.shape, fit.select(1).rotation.shape     # doctest: +SKIP
+            (torch.Size([1, 3, 3]), torch.Size([3, 3]))
+        """
+        from torchface.tracker.step import stream_index
+
+        if self.status.ndim != 1:  # (its fields' first dimension is no batch: rotation's rows were taken for one)
+            raise ValueError("this LandmarkFit is one stream's, without its batch dimension (select of an int): "
+                             "select streams from the batched fit")  # fmt: skip
+        one = (isinstance(index, (int, np.integer)) and not isinstance(index, (bool, np.bool_))) or (
+            isinstance(index, Tensor) and index.ndim == 0 and index.dtype not in (torch.bool, torch.uint8)
+        )  # fmt: skip
+        rows = stream_index(index, int(self.status.shape[0]), self.status.device)  # type: ignore[arg-type]
+        return LandmarkFit(*(getattr(self, f)[rows[0] if one else rows] for f in self.__dataclass_fields__))
 
     def to(
-        self, device: torch.device | str | int | torch.dtype | None = None, dtype: torch.dtype | None = None
+        self, device: torch.device | str | int | torch.dtype | None = None, dtype: torch.dtype | None = None,
+        non_blocking: bool = False, copy: bool = False,
     ) -> "LandmarkFit":
         """A copy on ``device`` with the floating tensors in ``dtype`` (a floating dtype; ``status`` keeps its integer
-        dtype), called as ``Tensor.to`` is (``.to(device)``, ``.to(dtype)``, ``.to(device, dtype)``, keywords:
-        :func:`~torchface._device.check_to_arguments`, as ``TrackResult.to``)."""
-        device, dtype = check_to_arguments(device, dtype)  # (a device this machine lacks: a ValueError listing those)
-        return LandmarkFit(*(
-            v.to(device=device, dtype=dtype) if v.is_floating_point() else v.to(device=device)
-            for v in (getattr(self, f) for f in self.__dataclass_fields__)
-        ))  # fmt: skip
+        dtype), called as ``Tensor.to`` is (``.to(device)``, ``.to(dtype)``, ``.to(device, dtype)``, keywords,
+        ``non_blocking`` and ``copy``: :func:`~torchface._device.tensor_mover`, as ``TrackResult.to``)."""
+        move = tensor_mover(device, dtype, non_blocking, copy)  # (a device this machine lacks: a ValueError)
+        return LandmarkFit(*(move(getattr(self, f)) for f in self.__dataclass_fields__))
 
 
 #: The shape units :class:`FitConfig` holds by default (``held_shape_units=None``): CANDIDE-3's units that move

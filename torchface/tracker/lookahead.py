@@ -45,7 +45,7 @@ from torch import Tensor
 from torchface._autocast import full_precision
 from torchface.appearance.sampling import image_with_gradients, sample_at_pixels
 from torchface.backend import Backend
-from torchface.geometry._checks import check_bool, check_int, check_ints, check_number, check_real
+from torchface.geometry._checks import check_bool, check_int, check_ints, check_names, check_number, check_real
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.projection import project_points, project_points_jacobian
 from torchface.geometry.so3 import (
@@ -159,9 +159,9 @@ class LookaheadConfig:
         object.__setattr__(self, "iterations", check_ints(self.iterations, "iterations", 0))
         if self.shape_units is not None:
             object.__setattr__(self, "shape_units", check_ints(self.shape_units, "shape_units", 0))
-        kept = self.kept_shape_units
-        if not isinstance(kept, tuple) or not all(isinstance(n, str) for n in kept) or len(set(kept)) != len(kept):
-            raise ValueError(f"kept_shape_units must be a tuple of distinct unit names, got {kept!r}")
+        # (a list was a ValueError, as was a wrong type: the other tuple settings take a list, and say TypeError)
+        kept = check_names(self.kept_shape_units, "kept_shape_units")
+        object.__setattr__(self, "kept_shape_units", kept)
         if kept and self.shape_units is not None:  # (they were ignored: shape_units names every unit re-estimated)
             raise ValueError(f"kept_shape_units {kept} applies with shape_units=None (the held units); with "
                              f"shape_units={self.shape_units} given, leave the kept units out of it")  # fmt: skip
@@ -1066,14 +1066,14 @@ def lookahead_fit(
         w = None if weights is None else weights[b]
         # (priors per stream: a batch can mix dense and sparse starts)
         return _stream_start(
-            model, frames[b, idx], intrinsics, landmarks_px[b], fit.select(slice(b, b + 1)), R[b, keys[b]],
+            model, frames[b, idx], intrinsics, landmarks_px[b], fit.select([b]), R[b, keys[b]],
             t[b, keys[b]], key_expression=expr[b, keys[b]], landmark_weights=w, config=la,
             backend=tracker_config.backend, **landmark_fit_priors(model, fc, intrinsics, landmarks_px[b], w),
         )  # fmt: skip
 
     # The streams with their keyframes refined together, as the online start's (one batched solve per keyframe
     # count, at most REANCHOR_BATCH streams each): each as alone
-    streams = [fit.select(slice(b, b + 1)) for b in range(B)]
+    streams = [fit.select([b]) for b in range(B)]
     groups: dict[int, list[int]] = {}
     for b in range(B):
         if len(keys[b]) >= config.min_keyframes:
@@ -1084,5 +1084,5 @@ def lookahead_fit(
             refined = _refine_starts(model, [problem(b) for b in chunk], intrinsics, la,
                                      backend=tracker_config.backend)[0]  # fmt: skip
             for j, b in enumerate(chunk):
-                streams[b] = refined.select(slice(j, j + 1))
+                streams[b] = refined.select([j])
     return LandmarkFit(*(torch.cat([getattr(f, n) for f in streams]) for n in LandmarkFit.__dataclass_fields__)), keys

@@ -1816,7 +1816,7 @@ def _reanchor(
                 seen = [to_gray(f[None].to(torch.float64))[0] for f in seen]
             return _stream_start(
                 model, torch.stack(seen), state.intrinsics, w.landmarks[b],
-                w.fit.select(slice(b, b + 1)), torch.stack([k[1] for k in ks]), torch.stack([k[2] for k in ks]),
+                w.fit.select([b]), torch.stack([k[1] for k in ks]), torch.stack([k[2] for k in ks]),
                 key_expression=torch.stack([k[3] for k in ks]), landmark_weights=weights, config=la,
                 backend=config.backend, **landmark_fit_priors(model, fc, state.intrinsics, w.landmarks[b], weights),
             )  # fmt: skip
@@ -1833,7 +1833,7 @@ def _reanchor(
                 out, key_R, key_t = _refine_starts(model, [start(streams[i]) for i in chunk], state.intrinsics, la,
                                                    backend=config.backend)  # fmt: skip
                 for j, i in enumerate(chunk):
-                    refined[i] = out.select(slice(j, j + 1)), key_R[j, -1], key_t[j, -1]
+                    refined[i] = out.select([j]), key_R[j, -1], key_t[j, -1]
         fits = [refined[i][0] for i in range(len(streams))]
         now_R, now_t = [refined[i][1] for i in range(len(streams))], [refined[i][2] for i in range(len(streams))]
         fit = LandmarkFit(*(torch.cat([getattr(f, n) for f in fits]) for n in LandmarkFit.__dataclass_fields__))

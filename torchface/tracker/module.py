@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import copy
+import dataclasses
+import warnings
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -31,6 +33,40 @@ _SETTINGS = frozenset({"config", "model", "detector", "refine_first", "pyramid"}
 #: :meth:`~FaceTracker.initialise` (:func:`~torchface.tracker.step.pyramid_for_faces`), ``"config"`` keeps
 #: ``config.num_levels``.
 PYRAMID_CHOICES: tuple[str, ...] = ("auto", "config")
+
+
+#: The settings a tracked sequence keeps from its :meth:`~FaceTracker.initialise`: its first templates and mosaic
+#: slots (``max_points``), the normalised face its confidence is measured on (``template.normalised_size``) and its
+#: reference's fiducial patches (``template.dissimilarity``) are made with them. A config set mid-sequence that
+#: changes one is tracked with the sequence's own, with a warning, until the next ``initialise`` (a changed
+#: ``normalised_size`` or ``max_points`` was ignored without a word, a changed ``patch_size`` or ``num_patches`` failed
+#: at the next mosaic entry with a RuntimeError of tensor shapes).
+INITIALISE_SETTINGS: tuple[str, ...] = ("max_points", "template.normalised_size", "template.dissimilarity")
+
+
+def initialise_settings_changed(started: TrackerConfig, config: TrackerConfig) -> list[str]:
+    """Which of :data:`INITIALISE_SETTINGS` ``config`` changes from ``started`` (the config a sequence was started
+    with), each as ``"name (old -> new)"`` (a field of ``template.dissimilarity`` by its own name)."""
+    changed = []
+    if config.max_points != started.max_points:
+        changed.append(f"max_points ({started.max_points} -> {config.max_points})")
+    if config.template.normalised_size != started.template.normalised_size:
+        changed.append(f"template.normalised_size ({started.template.normalised_size} -> "
+                       f"{config.template.normalised_size})")  # fmt: skip
+    old, new = started.template.dissimilarity, config.template.dissimilarity
+    for f in dataclasses.fields(old):
+        if getattr(old, f.name) != getattr(new, f.name):
+            changed.append(f"template.dissimilarity.{f.name} ({getattr(old, f.name)!r} -> {getattr(new, f.name)!r})")
+    return changed
+
+
+def keep_initialise_settings(started: TrackerConfig, config: TrackerConfig) -> TrackerConfig:
+    """``config`` with the :data:`INITIALISE_SETTINGS` of ``started`` (``config`` itself where they are the same)."""
+    if not initialise_settings_changed(started, config):
+        return config
+    template = dataclasses.replace(config.template, normalised_size=started.template.normalised_size,
+                                   dissimilarity=started.template.dissimilarity)  # fmt: skip
+    return dataclasses.replace(config, max_points=started.max_points, template=template)
 
 
 def check_pyramid(pyramid: object) -> None:
@@ -93,8 +129,9 @@ class FaceTracker(DeviceCheckedModule):
     Saving: the tracker has no learnable parameters, so ``state_dict()`` is empty (it holds a detector's weights
     where the detector is an ``nn.Module``) and holds no tracked sequence; ``load_state_dict`` therefore forgets the
     tracker's sequence, as :meth:`reset` does (the next step says so), so that a loaded checkpoint never continues
-    the sequence the tracker held before. To checkpoint a tracker mid-stream, ``torch.save(tracker, path)`` (or
-    pickle it) and load it with ``torch.load(path, weights_only=False)`` (trusted files only);
+    the sequence the tracker held before; a load that fails leaves the tracker as it was. To checkpoint a tracker
+    mid-stream, ``torch.save(tracker, path)`` (or pickle it) and load it with ``torch.load(path,
+    weights_only=False)`` (trusted files only);
     ``copy.deepcopy(tracker)`` forks a stream, and so does ``copy.copy(tracker)``, which shares the model, config
     and detector but not the tracked state. Each continues exactly as the original would, independently of it.
     :meth:`select` keeps some of the streams (e.g. drops those whose videos have ended).
@@ -109,6 +146,8 @@ class FaceTracker(DeviceCheckedModule):
     #: (class defaults: for trackers pickled before these attributes existed)
     pyramid: str = "auto"
     _tracking: "tuple[TrackerConfig, TrackerConfig] | None" = None
+    _added_levels: int | None = None
+    _started: TrackerConfig | None = None
 
     def __init__(
         self, config: TrackerConfig | None = None, model: FaceModel | None = None,
@@ -127,6 +166,8 @@ class FaceTracker(DeviceCheckedModule):
         self._state: TrackerState | None = None
         # (config, the config the sequence is tracked with): the levels pyramid="auto" added at initialise
         self._tracking: tuple[TrackerConfig, TrackerConfig] | None = None
+        self._added_levels: int | None = None  # the coarser levels pyramid="auto" added at initialise (None: unknown)
+        self._started: TrackerConfig | None = None  # the config the sequence was initialised with (None: unknown)
         self._dropped: str | None = None  # why the state was forgotten (a move, a load), for the next step's error
 
     def __setattr__(self, name: str, value: Any) -> None:
@@ -135,6 +176,16 @@ class FaceTracker(DeviceCheckedModule):
         loss, with a shape error, a dict config at the next step with an AttributeError)."""
         if name in _SETTINGS:
             _check_setting(name, value)
+        started = self.__dict__.get("_started")
+        if name == "config" and started is not None and self.__dict__.get("_state") is not None:
+            changed = initialise_settings_changed(started, value)
+            if changed:  # (its templates, mosaic and normalised faces are made with them)
+                warnings.warn(
+                    f"FaceTracker: the config set mid-sequence changes {', '.join(changed)}: settings the tracked "
+                    "sequence keeps from its initialise (its templates and normalised faces are made with them), so "
+                    "it goes on with the old values until the next initialise (tracking_config holds them)",
+                    UserWarning, stacklevel=2,
+                )  # fmt: skip
         super().__setattr__(name, value)
 
     def to(self, *args, **kwargs) -> "FaceTracker":  # type: ignore[override]
@@ -184,7 +235,11 @@ class FaceTracker(DeviceCheckedModule):
         ``pyramid="auto"`` added at :meth:`initialise` for large faces (its ``num_levels`` is the state's
         :attr:`~torchface.tracker.TrackerState.num_levels`); None before :meth:`initialise`. A config set
         mid-sequence gets the levels the state holds beyond it with ``pyramid="auto"`` (so a changed copy of this
-        one is taken as it is), none with ``"config"``.
+        one is taken as it is), at most as many as :meth:`initialise` added for large faces, none with
+        ``"config"``: one of other levels (``num_levels=2`` on a 3-level sequence that ``"auto"`` added none to) is
+        refused at the next step, as with ``"config"`` (it was tracked with the state's 3 levels, the coarsest's
+        iterations repeated, without a word). It keeps the sequence's :data:`INITIALISE_SETTINGS` until the next
+        :meth:`initialise` (the assignment warns where it changes them).
 
         Example:
             >>> tracker.initialise(frames, landmarks)        # 1280x720, a 380-pixel face  # doctest: +SKIP
@@ -198,7 +253,11 @@ class FaceTracker(DeviceCheckedModule):
             # as training_hooks continues a state; counted from the state: a config of the state's levels, e.g. a
             # changed tracking_config, got the added levels again, 5 for a 4-level state, and every step failed)
             extra = self._state.num_levels - self.config.num_levels if self.pyramid == "auto" else 0
+            if self._added_levels is not None:  # only those initialise added (unknown: a tracker pickled before)
+                extra = min(extra, self._added_levels)
             run = add_coarser_levels(self.config, max(0, extra))
+            if self._started is not None:  # (INITIALISE_SETTINGS: the sequence's own, as the state is made with them)
+                run = keep_initialise_settings(self._started, run)
             self._tracking = (self.config, run)
         return run
 
@@ -207,6 +266,8 @@ class FaceTracker(DeviceCheckedModule):
         self._state = None
         self._dropped = None
         self._tracking = None
+        self._added_levels = None
+        self._started = None
 
     def select(self, index: Sequence[int] | Tensor) -> "FaceTracker":
         """Keep only streams ``index`` (``(B',)`` stream indices, int64 or a list, in the order wanted; or a ``(B,)``
@@ -234,6 +295,47 @@ class FaceTracker(DeviceCheckedModule):
         new.__dict__.update({k: v.copy() if isinstance(v, (dict, set)) else v for k, v in self.__dict__.items()})
         new._state = copy.deepcopy(self._state)
         return new
+
+    def load_state_dict(  # type: ignore[override]
+        self, state_dict: Mapping[str, Any], strict: bool = True, assign: bool = False
+    ) -> Any:
+        """``nn.Module.load_state_dict``, which forgets the tracked sequence (a state_dict holds none:
+        :meth:`_load_from_state_dict`), checked before anything changes: a load that fails (keys missing or
+        unexpected, a detector weight of another size) raises torch's ``RuntimeError`` and leaves the tracker as it
+        was, its tracked sequence and a detector network's weights unchanged (it forgot the sequence, and torch had
+        copied the weights that matched, before raising). The check loads into a stand-in whose tensors are empty
+        ``meta`` ones (no data copied). Loaded by a module that holds it, the tracker forgets its sequence as torch
+        reaches it, whatever else that load refuses."""
+        self._check_loads(state_dict, strict, assign)
+        kept = (self._state, self._dropped, self._tracking)
+        try:
+            return super().load_state_dict(state_dict, strict, assign)
+        except BaseException:
+            self._state, self._dropped, self._tracking = kept
+            raise
+
+    def _check_loads(self, state_dict: Mapping[str, Any], strict: bool, assign: bool) -> None:
+        """Raise what ``load_state_dict(state_dict, strict, assign)`` would raise, changing nothing: the load made
+        into a stand-in, the tracker's settings with no tracked state, whose submodules (a detector network) are
+        copies with empty ``meta`` tensors of their parameters' and buffers' shapes and dtypes."""
+        if not isinstance(state_dict, Mapping):
+            return  # (torch's own TypeError, before anything changes)
+        memo: dict[int, Any] = {}
+        for t in [*self.parameters(), *self.buffers()]:
+            empty = torch.empty_like(t, device="meta")
+            memo[id(t)] = torch.nn.Parameter(empty, t.requires_grad) if isinstance(t, torch.nn.Parameter) else empty
+        probe = self.__class__.__new__(self.__class__)
+        probe.__dict__.update(self.__dict__)
+        try:
+            probe.__dict__.update(
+                {name: copy.deepcopy(self.__dict__[name], memo) for name in ("_modules", "_parameters", "_buffers")}
+            )
+        except Exception:  # (a detector network holding what cannot be copied: loaded unchecked, the sequence kept)
+            return
+        probe.__dict__.update(_state=None, _dropped=None, _tracking=None)
+        with warnings.catch_warnings():  # ("copying from a non-meta parameter ... to a meta parameter ... a no-op")
+            warnings.simplefilter("ignore")
+            torch.nn.Module.load_state_dict(probe, state_dict, strict, assign)
 
     def _load_from_state_dict(
         self, state_dict: Mapping[str, Any], prefix: str, local_metadata: dict[str, Any], strict: bool,
@@ -295,6 +397,8 @@ class FaceTracker(DeviceCheckedModule):
         self._state = None  # a failed initialisation must not leave the previous video's state to track on
         self._dropped = None
         self._tracking = None
+        self._added_levels = None
+        self._started = None
         config = self.config
         if self.pyramid == "auto":  # (the inputs checked first: their errors stay those of initialise_managed)
             check_initialise_inputs(self.model, config, frames, landmarks_px, intrinsics, weights)
@@ -303,6 +407,8 @@ class FaceTracker(DeviceCheckedModule):
             self.model, config, frames, landmarks_px, intrinsics, weights, fit=fit, refine_first=refine
         )
         self._tracking = (self.config, config)
+        self._added_levels = config.num_levels - self.config.num_levels
+        self._started = config
         return result
 
     @torch.no_grad()
@@ -320,6 +426,15 @@ class FaceTracker(DeviceCheckedModule):
             raise RuntimeError(f"call initialise(frames, landmarks) before tracking{self._why_none()}")
         config = self.tracking_config
         assert config is not None
+        levels, added = self._state.num_levels, config.num_levels - self.config.num_levels
+        if added and config.num_levels != levels:  # (check_state_levels would name the config's levels with those
+            # pyramid="auto" added, which the user did not set)
+            raise ValueError(
+                f"the state holds templates for {levels} pyramid levels, the config has num_levels = "
+                f"{self.config.num_levels} and pyramid='auto' adds the {added} coarser level(s) initialise added for "
+                f"large faces: set a config of {levels - added} levels (or a changed copy of tracking_config), or "
+                "initialise again"
+            )
         self._state, result = managed_step(self.model, config, self._state, frames, self.detector, donate=True)
         return result
 

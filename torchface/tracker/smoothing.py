@@ -575,6 +575,9 @@ class ResultSmoother:
         ...     smooth = smoother(raw, tracker_state=tracker.state)                    # smoothed pose
     """
 
+    #: (class default: for smoothers pickled before the attribute existed)
+    _timed: bool | None = None
+
     def __init__(
         self, config: SmoothingConfig | None = None, fps: float | None = None, model: FaceModel | None = None
     ) -> None:
@@ -596,6 +599,7 @@ class ResultSmoother:
         # (B,) bool: streams re-anchored in the last call's step, whose next result is the first of the re-anchored
         # estimate (managed_step reports a frame at the offsets it was tracked under, then re-anchors)
         self._reanchoring: Tensor | None = None
+        self._timed: bool | None = None  # whether the calls give timestamps (None: no call since the last reset)
 
     @property
     def state(self) -> SmoothingState | None:
@@ -608,6 +612,7 @@ class ResultSmoother:
         self._frames = None
         self._offsets = None
         self._reanchoring = None
+        self._timed = None
 
     def select(self, index: Sequence[int] | Tensor) -> "ResultSmoother":
         """Keep only streams ``index`` (as :meth:`FaceTracker.select <torchface.tracker.FaceTracker.select>`);
@@ -640,7 +645,9 @@ class ResultSmoother:
         Args:
             result: the tracker's result, batch B (the same streams, in the same order, as the previous call's).
             timestamps: ``(B,)`` the frames' times in seconds (a video's presentation times), or None: the
-                smoother's ``fps`` (each stream's frames counted from its first result).
+                smoother's ``fps`` (each stream's frames counted from its first result). Either at every call
+                until :meth:`reset`: a call without timestamps after calls with them (or the other way round) is a
+                ``ValueError`` (it counted frames from 0, so that every stream's time went back and it restarted).
             restart: ``(B,)`` bool, streams that start afresh at this frame (a new video in a slot), or None.
             tracker_state: the tracker's state after this result (``tracker.state``), or None: a stream that the
                 online start re-anchored in this result's step (its offsets changed since the last call's state)
@@ -653,6 +660,14 @@ class ResultSmoother:
         if self._state is not None and self._state.time.shape[0] != B:
             raise ValueError(f"the smoother holds {self._state.time.shape[0]} streams, the result has {B}: select() "
                              "or reset() the smoother as the tracker's streams change")  # fmt: skip
+        timed = timestamps is not None
+        if self._state is not None and self._timed is not None and timed != self._timed:
+            given, now = ("with", "without") if self._timed else ("without", "with")
+            raise ValueError(
+                f"this smoother's calls were made {given} timestamps, this one {now}: give them at every call or at "
+                "none (frames counted by fps start at 0 and are no video's times: each stream would go back in time "
+                "and restart), or reset() the smoother first"
+            )
         if timestamps is None:
             if self.fps is None:
                 raise ValueError("give the frames' timestamps, or the frame rate: ResultSmoother(config, fps=...)")
@@ -666,4 +681,5 @@ class ResultSmoother:
             restart = self._reanchoring if restart is None else restart | self._reanchoring
         self._reanchoring = None if tracker_state is None else self._reanchored(tracker_state, B, device)
         out, self._state = smooth_result(result, self._state, time, self.config, self.facs_matrix, restart)
+        self._timed = timed
         return out

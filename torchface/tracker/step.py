@@ -24,7 +24,7 @@ from torch import Tensor
 from torchface import _native
 from torchface._autocast import full_precision
 from torchface._compiling import check_reverse_mode
-from torchface._device import check_holds_data, check_to_arguments
+from torchface._device import check_holds_data, tensor_mover
 from torchface._frame_values import FRAME_VALUE_RANGE, STEP_VALUE_ROW_STRIDE, check_frame_values
 from torchface._scalar import scalar
 from torchface.appearance.illumination import ILLUMINATION_TERM_NAMES, NUM_ILLUMINATION_TERMS, illumination_basis
@@ -704,15 +704,16 @@ class TrackResult:
         return tuple(StartFailure(code).reason for code in self.start_failure.tolist())
 
     def to(
-        self, device: torch.device | str | int | torch.dtype | None = None, dtype: torch.dtype | None = None
+        self, device: torch.device | str | int | torch.dtype | None = None, dtype: torch.dtype | None = None,
+        non_blocking: bool = False, copy: bool = False,
     ) -> "TrackResult":
         """The result on ``device`` with the floating tensors in ``dtype`` (a floating dtype; the integer ones,
         ``status``, ``iterations``, ``num_points``, ``mosaic_entry`` and ``start_failure``, keep theirs); the names and
         the fields that are None as they are, ``self`` unchanged (a tensor already on that device and in that dtype is
-        shared, as ``Tensor.to`` returns it). Called as ``Tensor.to`` is: ``.to(device)``, ``.to(dtype)``,
-        ``.to(device, dtype)`` or with keywords (:func:`~torchface._device.check_to_arguments`: anything else is a
-        ``TypeError``). A device this machine lacks, or ``meta`` (no values), is a ``ValueError`` naming it
-        (docs/python-api.md, "Devices and dtypes").
+        shared, as ``Tensor.to`` returns it, unless ``copy=True``). Called as ``Tensor.to`` is: ``.to(device)``,
+        ``.to(dtype)``, ``.to(device, dtype)`` or with keywords, ``non_blocking`` and ``copy`` as ``Tensor.to`` takes
+        them (:func:`~torchface._device.tensor_mover`: anything else is a ``TypeError``). A device this machine lacks,
+        or ``meta`` (no values), is a ``ValueError`` naming it (docs/python-api.md, "Devices and dtypes").
 
         Example:
             >>> result.to(torch.float64).translation.dtype                      # doctest: +SKIP
@@ -720,10 +721,8 @@ class TrackResult:
         """
         from torchface.normalise.face import apply_to_tensor_fields
 
-        device, dtype = check_to_arguments(device, dtype)  # (a device not here: a ValueError naming those here)
-        return apply_to_tensor_fields(
-            lambda t: t.to(device=device, dtype=dtype if t.is_floating_point() else None), self
-        )
+        # (a device not here: a ValueError naming those here)
+        return apply_to_tensor_fields(tensor_mover(device, dtype, non_blocking, copy), self)
 
     def cpu(self) -> "TrackResult":
         """``self.to("cpu")``: a copy with every tensor on the CPU."""
@@ -1383,8 +1382,8 @@ def check_given_fit(model: FaceModel, fit: LandmarkFit, batch: int) -> None:
     rotation = shapes.get("rotation")
     if rotation == (3, 3):  # (its 3 rows were read as the batch: "got batch 3")
         raise ValueError(f"fit must be a LandmarkFit of batch {batch}, got one stream's fit without its batch "
-                         "dimension, rotation (3, 3) (LandmarkFit.select of an int drops it; fit.select(slice(b, "
-                         "b + 1)) keeps it)")  # fmt: skip
+                         "dimension, rotation (3, 3) (LandmarkFit.select of an int drops it; fit.select([b]) keeps "
+                         "it)")  # fmt: skip
     if not isinstance(rotation, tuple) or len(rotation) != 3:
         raise ValueError(f"fit must be a LandmarkFit of batch {batch}, got rotation {rotation}: (B, 3, 3) wanted")
     if rotation[0] != batch:  # (said "got LandmarkFit", the right type)
