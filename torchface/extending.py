@@ -9,7 +9,8 @@ follow torchface's own rules:
   numbers, :func:`check_number` for a number and its range (``"[0, 1]"``, ``"(0, inf)"``: finite unless the
   interval closes on ``inf``), :func:`check_choice` for an enum member, :func:`check_intrinsics`, and :func:`check_no_tilde` for paths (a ``~`` nothing expanded), each a
   ``TypeError`` or ``ValueError`` that names the setting; :func:`unexpanded_home`, the rule of that ``~``, and
-  :func:`no_home_reason`, why nothing here expands it, for messages of its own (a missing path's hint);
+  :func:`no_home_reason`, why nothing here expands it, for messages of its own, and :func:`missing_path_hint`, the
+  hint torchface gives for a missing path that starts with such a ``~``;
 - :func:`full_precision`, the decorator that runs torchface's public entry points in the dtype of their inputs
   inside a caller's ``torch.autocast`` region;
 - :func:`is_compiling`, whether ``torch.compile`` (or ``torch.export``) traces the running code, on every torch
@@ -39,7 +40,7 @@ from __future__ import annotations
 from torchface._autocast import full_precision
 from torchface._compiling import is_compiling
 from torchface._device import DeviceCheckedModule, check_cuda_device, check_device, check_to_device
-from torchface._paths import check_no_tilde, no_home_reason, unexpanded_home
+from torchface._paths import check_no_tilde, missing_path_hint, no_home_reason, unexpanded_home
 from torchface.geometry._checks import (
     check_bool,
     check_choice,
@@ -67,6 +68,7 @@ __all__ = [
     "check_to_device",
     "full_precision",
     "is_compiling",
+    "missing_path_hint",
     "no_home_reason",
     "unexpanded_home",
 ]

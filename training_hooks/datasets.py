@@ -200,8 +200,7 @@ from torchface.extending import (
     check_no_tilde,
     check_number,
     check_optional_int,
-    no_home_reason,
-    unexpanded_home,
+    missing_path_hint,
 )
 from torchface.io.errors import InputError
 from torchface.io.landmarks import NUM_LANDMARKS, check_landmarks, read_landmarks
@@ -918,20 +917,14 @@ def _holds_images(folder: Path) -> bool:
 
 def _tilde(given: str | os.PathLike[str]) -> str:
     """A hint for a missing path ``given`` starting with a ``~`` that names a home folder
-    (:func:`torchface._paths.unexpanded_home`, the rule of the path settings' :func:`check_no_tilde`; the paths are
-    made absolute against the working folder, and ``~`` is expanded by a shell, not by ``pathlib`` nor OpenCV:
-    ``"~/a.avi"`` was ``<working folder>/~/a.avi``), also where ``os.path.expanduser`` cannot expand it (``HOME``
-    unset, no password entry: it gave no hint); "" otherwise: ``~draft.avi`` is a name as any other, and a ``~``
-    further on (``data/~/a.avi``) is one that neither a shell nor ``os.path.expanduser`` expands (each part was
-    looked at, and the hint said that ``expanduser`` would give the home folder)."""
-    home = unexpanded_home(os.fspath(given))
-    if home is None:
-        return ""
-    first, expands = home
-    if expands:
-        return f" ('{first}' is not expanded here: os.path.expanduser(path) names the home folder)"
-    return (f" ('{first}' is not expanded here, and os.path.expanduser cannot expand it here "
-            f"({no_home_reason(first)}): give the home folder's path)")  # fmt: skip
+    (:func:`torchface.extending.missing_path_hint`, torchface's own words: the rule of the path settings'
+    :func:`check_no_tilde`; the paths are made absolute against the working folder, and ``~`` is expanded by a
+    shell, not by ``pathlib`` nor OpenCV: ``"~/a.avi"`` was ``<working folder>/~/a.avi``), also where
+    ``os.path.expanduser`` cannot expand it (``HOME`` unset, no password entry: it gave no hint); "" otherwise:
+    ``~draft.avi`` is a name as any other, and a ``~`` further on (``data/~/a.avi``) is one that neither a shell nor
+    ``os.path.expanduser`` expands (each part was looked at, and the hint said that ``expanduser`` would give the
+    home folder)."""
+    return missing_path_hint(given)
 
 
 def _as_numpy(points: Tensor) -> np.ndarray:
