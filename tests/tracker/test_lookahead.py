@@ -597,6 +597,8 @@ def test_lookahead_fit_tells_a_clip_of_another_layout_how_to_make_it(model):
         (clip.transpose(0, 1), r"\(time first, \(T, B, C, H, W\)\? frames\.transpose\(0, 1\)\)$",
          lambda f: f.transpose(0, 1)),
         ((clip * 255).to(torch.uint8), r"\(uint8 frames: pass frames\.float\(\) / 255\)$", lambda f: f.float() / 255),
+        ((clip * 65535).to(torch.uint16), r"\(16-bit frames: pass frames\.float\(\) / 65535\)$",
+         lambda f: f.float() / 65535),  # (the tracker's words: it was told to convert alone)
     ):  # fmt: skip
         with pytest.raises(ValueError, match=r"^frames must be \(B, T, 3, H, W\) float in \[0, 1\] with T >= 2, got .*"
                                              + said):

@@ -59,7 +59,7 @@ from torchface.tracker.fit import (
     FitConfig, LandmarkFit, check_landmark_type, check_landmark_values, check_precisions, fit_landmarks,
     held_shape_indices, landmark_targets, prior_scale, shape_precisions, shape_prior_vector, sparse_samples,
 )
-from torchface.tracker.step import TrackerConfig, check_api_types, gray_pyramid, level_intrinsics
+from torchface.tracker.step import TrackerConfig, check_api_types, gray_pyramid, level_intrinsics, pixel_type_hint
 
 __all__ = ["LookaheadConfig", "select_keyframes", "view_yaw_deg", "refine_first_fit", "lookahead_fit"]
 
@@ -981,10 +981,8 @@ def _clip_hint(frames: Tensor) -> str:
         hints.append("RGBA: drop the alpha, frames[:, :, :3]")
     elif len(shape) == 5 and shape[1] == 1 and shape[0] >= 2:
         hints.append("time first, (T, B, C, H, W)? frames.transpose(0, 1)")
-    if frames.dtype == torch.uint8:
-        hints.append("uint8 frames: pass frames.float() / 255")
-    elif not frames.is_floating_point():
-        hints.append("convert them to float in [0, 1]")
+    dtype = pixel_type_hint(frames)  # (the tracker's words: uint16 clips were told to convert alone)
+    hints += [dtype] if dtype else []
     return f" ({'; '.join(hints)})" if hints else ""
 
 

@@ -1028,13 +1028,19 @@ def _frame_hint(frames: Tensor) -> str:
         hints.append("RGBA: drop the alpha, frames[:, :3]")
     elif frames.dim() == 5:  # (a clip, as a video dataset's batch holds it, was told the shape alone)
         hints.append("a clip (B, T, C, H, W)? one frame per stream per call: frames[:, t]")
-    if frames.dtype == torch.uint8:
-        hints.append("uint8 frames: pass frames.float() / 255")
-    elif frames.dtype == torch.uint16:
-        hints.append("16-bit frames: pass frames.float() / 65535")
-    elif not frames.is_floating_point():
-        hints.append("convert them to float in [0, 1]")
+    dtype = pixel_type_hint(frames)
+    hints += [dtype] if dtype else []
     return f" ({'; '.join(hints)})" if hints else ""
+
+
+def pixel_type_hint(frames: Tensor) -> str:
+    """How to make frames of integer pixels ``frames`` float in [0, 1] (uint8, uint16, another integer type), for
+    the messages of refused frames and clips; "" for float frames."""
+    if frames.dtype == torch.uint8:
+        return "uint8 frames: pass frames.float() / 255"
+    if frames.dtype == torch.uint16:
+        return "16-bit frames: pass frames.float() / 65535"
+    return "" if frames.is_floating_point() else "convert them to float in [0, 1]"
 
 
 def check_frames(
