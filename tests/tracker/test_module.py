@@ -279,6 +279,27 @@ def test_a_failed_load_state_dict_leaves_the_tracker_as_it_was(model, three_stre
     assert tracker.state is None and float(tracker.detector.scale) == 2.0
 
 
+class _LazyNoFaces(_NoFaces):
+    """:class:`_NoFaces` holding a lazy layer, its weights made at the first call or load."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.head = torch.nn.LazyLinear(2)
+
+
+def test_load_state_dict_materialises_a_lazy_detector_as_torch_does(model):
+    """A detector network with lazy layers not yet called (``nn.LazyLinear``) loads a checkpoint's weights, as
+    ``nn.Module.load_state_dict`` loads them: the check made before the load (on a stand-in of empty ``meta``
+    tensors) refused it with a ValueError, "Attempted to use an uninitialized parameter", an uninitialised parameter
+    having no meta twin."""
+    source = _LazyNoFaces()
+    source.head(torch.zeros(1, 3))  # (its weights made: (2, 3))
+    saved = FaceTracker(CFG, model, detector=source, refine_first=None).state_dict()
+    tracker = FaceTracker(CFG, model, detector=_LazyNoFaces(), refine_first=None)
+    tracker.load_state_dict(saved)
+    assert torch.equal(tracker.detector.head.weight, source.head.weight)
+
+
 def test_a_saved_tracker_goes_on_as_the_original(model, three_streams):
     """The module's documented checkpoint, ``torch.save(tracker)`` mid-stream and ``torch.load(...,
     weights_only=False)``, continues exactly as the original does; the original is not changed by saving."""

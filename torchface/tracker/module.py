@@ -321,12 +321,12 @@ class FaceTracker(DeviceCheckedModule):
         if not isinstance(state_dict, Mapping):
             return  # (torch's own TypeError, before anything changes)
         memo: dict[int, Any] = {}
-        for t in [*self.parameters(), *self.buffers()]:
-            empty = torch.empty_like(t, device="meta")
-            memo[id(t)] = torch.nn.Parameter(empty, t.requires_grad) if isinstance(t, torch.nn.Parameter) else empty
         probe = self.__class__.__new__(self.__class__)
         probe.__dict__.update(self.__dict__)
-        try:
+        try:  # (an uninitialised lazy parameter has no meta twin: empty_like's ValueError refused a load torch takes)
+            for t in [*self.parameters(), *self.buffers()]:
+                empty = torch.empty_like(t, device="meta")
+                memo[id(t)] = torch.nn.Parameter(empty, t.requires_grad) if isinstance(t, torch.nn.Parameter) else empty
             probe.__dict__.update(
                 {name: copy.deepcopy(self.__dict__[name], memo) for name in ("_modules", "_parameters", "_buffers")}
             )
