@@ -168,7 +168,7 @@ class TemplateConfig:
         confidence_threshold: a frame with dissimilarity confidence below this is not confident: nothing is
             learnt from it (no mosaic entry, no texture update) and it counts toward a loss. At most
             ``recover_confidence`` (refused above it: a frame between the two would count toward a loss and end
-            it, and ``lost_after`` would never declare a stream lost); raise both together. At 0.5 the
+            it, and ``lost_after`` would never declare a stream scoring there lost); raise both together. At 0.5 the
             light_switch scenario (error about 1 degree, confidence 0.4-0.5 under the strongest light) was
             declared lost for 10 frames; at 0.3 never, while scan_motion's stretches above 5 degrees of error
             (confidence 0.04-0.2) still are.
@@ -359,7 +359,7 @@ class TemplateConfig:
             raise ValueError(
                 f"confidence_threshold ({self.confidence_threshold:g}) must not exceed recover_confidence "
                 f"({self.recover_confidence:g}): a frame scoring between them counts toward a loss and ends it, so "
-                f"lost_after would never declare a stream lost; raise recover_confidence with it, e.g. "
+                f"lost_after would never declare a stream scoring there lost; raise recover_confidence with it, e.g. "
                 f"TemplateConfig(confidence_threshold={self.confidence_threshold:g}, "
                 f"recover_confidence={self.confidence_threshold:g})"
             )
