@@ -501,6 +501,14 @@ def test_settings_fixed_at_initialise_set_mid_sequence_warn_and_wait_for_the_nex
         assert tracker.state.management.layout.size == 96 and tracker.state.templates[0].points.shape[1] == 300
         tracker.config = replace(changed, robust_c=5.0)  # (those settings as initialised: no warning)
         assert tracker.tracking_config.robust_c == 5.0
+    # A config that cannot go on with the kept max_points (min_points above it) is refused when set, saying why, and
+    # the tracker keeps its config (the next step failed, naming a max_points = 300 the caller never set there).
+    before = tracker.config
+    with pytest.raises(ValueError, match=r"^the config cannot go on with what the tracked sequence keeps from its "
+                                         r"initialise \(max_points \(300 -> 1000\)\): min_points must be in \[0, "
+                                         r"max_points = 300\]"):  # fmt: skip
+        tracker.config = replace(changed, max_points=1000, min_points=700)
+    assert tracker.config is before and tracker.tracking_config is before
 
 
 # ----------------------------------------------------------------------------------------------- missing landmarks

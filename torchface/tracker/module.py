@@ -64,9 +64,14 @@ def keep_initialise_settings(started: TrackerConfig, config: TrackerConfig) -> T
     """``config`` with the :data:`INITIALISE_SETTINGS` of ``started`` (``config`` itself where they are the same)."""
     if not initialise_settings_changed(started, config):
         return config
-    template = dataclasses.replace(config.template, normalised_size=started.template.normalised_size,
-                                   dissimilarity=started.template.dissimilarity)  # fmt: skip
-    return dataclasses.replace(config, max_points=started.max_points, template=template)
+    try:
+        template = dataclasses.replace(config.template, normalised_size=started.template.normalised_size,
+                                       dissimilarity=started.template.dissimilarity)  # fmt: skip
+        return dataclasses.replace(config, max_points=started.max_points, template=template)
+    except ValueError as exc:  # (min_points above the kept max_points was told a max_points the caller never set)
+        kept = ", ".join(initialise_settings_changed(started, config))
+        raise ValueError(f"the config cannot go on with what the tracked sequence keeps from its initialise ({kept}): "
+                         f"{exc}; start a sequence with it (initialise), or set it after one") from None
 
 
 def check_pyramid(pyramid: object) -> None:
@@ -180,6 +185,7 @@ class FaceTracker(DeviceCheckedModule):
         if name == "config" and started is not None and self.__dict__.get("_state") is not None:
             changed = initialise_settings_changed(started, value)
             if changed:  # (its templates, mosaic and normalised faces are made with them)
+                keep_initialise_settings(started, value)  # (refused here, the tracker unchanged, where it cannot)
                 warnings.warn(
                     f"FaceTracker: the config set mid-sequence changes {', '.join(changed)}: settings the tracked "
                     "sequence keeps from its initialise (its templates and normalised faces are made with them), so "
