@@ -366,6 +366,23 @@ def test_blendshapes_in_another_unit_than_the_mesh_warn(tmp_path):
         load_face_model(tmp_path / "s.npz")
 
 
+@pytest.mark.parametrize("where", ["blendshapes", "animation_ranges"])
+def test_a_non_finite_blendshape_or_range_is_refused_without_the_unit_warning(where):
+    """An inf blendshape value or range is FaceModel's ValueError; the blendshape-size check warned before it that
+    the blendshapes "move the mesh by at most inf" and asked whether they are in the mesh's unit."""
+    from torchface.model import load_candide3
+
+    c = load_candide3(dtype=torch.float64)
+    units, ranges = c.animation_units.numpy().copy(), c.animation_ranges.numpy().copy()
+    (units[0, 5] if where == "blendshapes" else ranges[0])[0] = -np.inf
+    with warnings.catch_warnings(record=True) as said:
+        warnings.simplefilter("always")
+        with pytest.raises(ValueError, match=r"holds non-finite values"):
+            load_mesh_model(trimesh.Trimesh(c.mean.numpy(), c.faces.numpy(), process=False), blendshapes=units,
+                            animation_ranges=ranges)  # fmt: skip
+    assert not [w for w in said if "blendshapes move the mesh" in str(w.message)], [str(w.message) for w in said]
+
+
 def test_repeated_blendshape_names_are_refused_at_load():
     with pytest.raises(ValueError, match=r"animation_names must be distinct .* repeated: \['browDown'\]"):
         load_mesh_model(trimesh.Trimesh(TET_V, TET_F, process=False), blendshapes=np.zeros((2, 5, 3)),

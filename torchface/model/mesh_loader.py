@@ -148,6 +148,8 @@ def _check_blendshape_size(
     used = vertices[np.unique(faces)]
     span = float((used.max(axis=0) - used.min(axis=0)).max())
     reach = np.sqrt((basis**2).sum(axis=2)).max(axis=1) * np.abs(ranges).max(axis=1)  # (A,)
+    if not np.isfinite(reach).all():  # (a non-finite blendshape or range, which FaceModel refuses: an inf one warned
+        return  # that the blendshapes "move the mesh by at most inf", the unit's question, before that error)
     a = int(reach.argmax())
     if not (span > 0 and reach[a] > 0):
         return  # (nothing moves, or a mesh of no size: nothing to judge by)
