@@ -267,7 +267,7 @@ def test_a_failed_load_state_dict_leaves_the_tracker_as_it_was(model, three_stre
     ):
         with pytest.raises(RuntimeError, match=message):
             tracker.load_state_dict(bad)
-        assert tracker.state is state and float(tracker.detector.scale) == 1.0
+        assert tracker.state is state and float(tracker.detector.scale.detach()) == 1.0
     plain = FaceTracker(CFG, model, refine_first=None)  # (no weights at all)
     plain.initialise(frames[:, 0], lm)
     before = plain.state
@@ -276,7 +276,7 @@ def test_a_failed_load_state_dict_leaves_the_tracker_as_it_was(model, three_stre
     assert plain.state is before
     assert_same(fork(frames[:, 2]), tracker(frames[:, 2]))
     tracker.load_state_dict({**good, "x": torch.zeros(1)}, strict=False)
-    assert tracker.state is None and float(tracker.detector.scale) == 2.0
+    assert tracker.state is None and float(tracker.detector.scale.detach()) == 2.0
 
 
 class _LazyNoFaces(_NoFaces):
