@@ -204,6 +204,11 @@ def test_other_landmark_sets_are_told_what_they_are_and_openposes_to_keep_its_fi
                 call()
     np.save(tmp_path / "lm.npy", points[:68])  # (the 70's, as told)
     np.testing.assert_array_equal(read_landmarks(tmp_path / "lm.npy", 100, 100), points[:68])
+    # A text file's reader (torchface track's user) is told to keep the file's rows, not the Python of an array.
+    np.savetxt(tmp_path / "lm.csv", points, delimiter=",")
+    with pytest.raises(InputError, match=r"Its first 68 are the iBUG points, in their order \(then the pupils\): keep "
+                                         r"the file's first 68 rows\)$"):  # fmt: skip
+        read_landmarks(tmp_path / "lm.csv", 100, 100)
 
 
 def test_a_wrong_count_says_how_the_callers_source_writes_a_missing_point(tmp_path):

@@ -817,7 +817,9 @@ def check_landmarks(
         what = "iBUG landmarks" if count == NUM_LANDMARKS else "landmarks (the face model's)"
         if count == NUM_LANDMARKS and points.shape[0] in MEDIAPIPE_MESH_POINT_COUNTS:  # (told the count alone)
             hint = f" ({MEDIAPIPE_MESH_HINT})"
-        other = other_landmark_set_hint(points.shape[0], "points[:68]") if count == NUM_LANDMARKS else None
+        # (a file's reader, torchface track's user, was told the Python of an array: a file keeps its first 68 rows)
+        keep = "keep the file's first 68 rows" if missing_as else "points[:68]"
+        other = other_landmark_set_hint(points.shape[0], keep) if count == NUM_LANDMARKS else None
         if other is not None:  # (WFLW's 98 points were told that a missing point stays as a NaN row)
             hint = f" ({other})"
         raise InputError(f"{where}: expected {count} {what}, got {points.shape[0]}{hint}")
