@@ -135,18 +135,25 @@ def _check_displacements(basis: np.ndarray, names: tuple[str, ...], vertices: np
         )
 
 
+def _used_span(vertices: np.ndarray, faces: np.ndarray) -> float:
+    """The span of the ``(V, 3)`` vertices the ``(F, 3)`` faces use: the largest side of their bounding box."""
+    used = vertices[np.unique(faces)]
+    return float((used.max(axis=0) - used.min(axis=0)).max())
+
+
 def _check_blendshape_size(
-    basis: np.ndarray, ranges: np.ndarray, names: tuple[str, ...], vertices: np.ndarray, faces: np.ndarray, unit: str
+    basis: np.ndarray, ranges: np.ndarray, names: tuple[str, ...], vertices: np.ndarray, faces: np.ndarray, unit: str,
+    stacklevel: int = 3,
 ) -> None:
     """Warn when the ``(A, V, 3)`` blendshapes, within their ``(A, 2)`` ranges, move the ``(V, 3)`` mesh by an
     implausible amount for its size (``unit``: what its numbers are, in the message): when the largest displacement
     of any vertex at either end of any unit's range is outside :data:`_BLENDSHAPE_REACH` times the span of the used
     vertices (the largest side of their bounding box). Blendshapes in another unit than the mesh are taken, scaled by
-    ``scale_to_mm`` as the mesh is: a jaw that barely moves, or one that leaves the face."""
+    ``scale_to_mm`` as the mesh is: a jaw that barely moves, or one that leaves the face. The warning names the frame
+    ``stacklevel`` up (3: the caller of the loader that calls this)."""
     if basis.shape[0] == 0:
         return
-    used = vertices[np.unique(faces)]
-    span = float((used.max(axis=0) - used.min(axis=0)).max())
+    span = _used_span(vertices, faces)
     reach = np.sqrt((basis**2).sum(axis=2)).max(axis=1) * np.abs(ranges).max(axis=1)  # (A,)
     if not np.isfinite(reach).all():  # (a non-finite blendshape or range, which FaceModel refuses: an inf one warned
         return  # that the blendshapes "move the mesh by at most inf", the unit's question, before that error)
@@ -161,7 +168,7 @@ def _check_blendshape_size(
             "about a tenth of its size (CANDIDE-3's jaw drop 0.22 of it): are the blendshapes in the mesh's unit "
             "(scale them to it: blendshapes in metres on a mesh in millimetres make a jaw that barely moves)?",
             UserWarning,
-            stacklevel=3,
+            stacklevel=stacklevel,
         )
 
 
@@ -260,26 +267,27 @@ def _check_ibug_layout(weighted: np.ndarray, name: str, stacklevel: int = 3) -> 
 
 
 def _check_surface(
-    vertices: np.ndarray, faces: np.ndarray, lm_idx: np.ndarray, lm_w: np.ndarray, name: str, said: str, ask: str
+    vertices: np.ndarray, faces: np.ndarray, lm_idx: np.ndarray, lm_w: np.ndarray, name: str, said: str, ask: str,
+    stacklevel: int = 3,
 ) -> None:
     """The checks of a face model's surface that :func:`load_mesh_model` and
     :func:`~torchface.model.model_file.load_face_model` both make, on ``(V, 3)`` head-frame millimetre ``vertices``,
     ``(F, 3)`` ``faces`` and ``(K, J)`` landmarks ``lm_idx`` / ``lm_w``: the winding (:func:`_check_winding`, a
     ``ValueError``), the span of the used vertices (a ``UserWarning`` outside 50 mm - 2 m; ``said`` follows the span
     in it, ``ask`` is its question about the unit) and, for 68 landmarks, their iBUG-68 layout (a ``UserWarning``,
-    :func:`_check_ibug_layout`). Warnings name the caller of the loader that calls this."""
+    :func:`_check_ibug_layout`). Warnings name the frame ``stacklevel`` up (3: the caller of the loader that calls
+    this)."""
     _check_winding(vertices, faces)
-    used = vertices[np.unique(faces)]
-    span = float((used.max(axis=0) - used.min(axis=0)).max())
+    span = _used_span(vertices, faces)
     if not _FACE_SPAN_MM[0] <= span <= _FACE_SPAN_MM[1]:
         warnings.warn(
             f"the mesh spans {span:.3g} mm {said}; a face is 100-300 mm: {ask} Tracked translations come out "
             "scaled by the same mistake, and a face of a few millimetres fails the landmark fit",
             UserWarning,
-            stacklevel=3,
+            stacklevel=stacklevel,
         )
     if lm_idx.shape[0] == 68:
-        _check_ibug_layout(vertices[lm_idx] * lm_w[:, :, None], name, stacklevel=4)
+        _check_ibug_layout(vertices[lm_idx] * lm_w[:, :, None], name, stacklevel=stacklevel + 1)
 
 
 def _obj_vertices(path: Path) -> np.ndarray | None:

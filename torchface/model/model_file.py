@@ -63,6 +63,26 @@ _TENSORS = {
 _ENTRIES = frozenset({"format", "format_version", "name", *_NAMES, *_TENSORS})
 
 
+def _check_arrays(
+    arrays: dict[str, np.ndarray], names: dict[str, tuple[str, ...]], name: str, said: str, ask: str
+) -> None:
+    """The checks :func:`load_face_model` makes of a file's ``arrays`` (``names``: its name tuples) beyond
+    :class:`FaceModel`'s own, and :func:`save_face_model` of the arrays it will write: no basis entry a whole mesh
+    (:func:`~torchface.model.mesh_loader._check_displacements`), the blendshapes' size for the mesh's span (a
+    warning), and the surface (the winding, the span, the iBUG-68 layout: ``name``, ``said`` and ``ask`` word its
+    messages, :func:`~torchface.model.mesh_loader._check_surface`). Warnings name the caller of the function that
+    calls this."""
+    mean = np.asarray(arrays["mean"], dtype=np.float64)
+    faces = arrays["faces"].astype(np.int64)
+    for key, named in (("animation_units", "animation_names"), ("shape_units", "shape_names")):
+        _check_displacements(np.asarray(arrays[key], dtype=np.float64), names[named], mean, key)
+    _check_blendshape_size(np.asarray(arrays["animation_units"], dtype=np.float64),
+                           np.asarray(arrays["animation_ranges"], dtype=np.float64), names["animation_names"], mean,
+                           faces, "mm", stacklevel=4)  # fmt: skip
+    _check_surface(mean, faces, arrays["landmark_vertices"].astype(np.int64),
+                   np.asarray(arrays["landmark_weights"], dtype=np.float64), name, said, ask, stacklevel=4)
+
+
 def _array(value: torch.Tensor) -> np.ndarray:
     """A tensor as the file holds it: on the CPU, ``bfloat16`` as ``float32`` (exact)."""
     value = value.detach().cpu()
@@ -116,16 +136,9 @@ def save_face_model(model: FaceModel, path: str | os.PathLike[str]) -> None:
             arrays[f.name] = np.array(value) if f.name == "name" else np.array(list(value), dtype=np.str_)
     # load_face_model's checks, on the values the file will hold, before anything is written (a model wound inward
     # was written, and refused only when torchface track read it)
-    mean = np.asarray(arrays["mean"], dtype=np.float64)
     try:
-        for key, named in (("animation_units", "animation_names"), ("shape_units", "shape_names")):
-            _check_displacements(np.asarray(arrays[key], dtype=np.float64), getattr(model, named), mean, key)
-        _check_blendshape_size(np.asarray(arrays["animation_units"], dtype=np.float64),
-                               np.asarray(arrays["animation_ranges"], dtype=np.float64), model.animation_names, mean,
-                               arrays["faces"].astype(np.int64), "mm")  # fmt: skip
-        _check_surface(mean, arrays["faces"].astype(np.int64), arrays["landmark_vertices"].astype(np.int64),
-                       np.asarray(arrays["landmark_weights"], dtype=np.float64), model.name, "in the model",
-                       "is the model in millimetres (torchface.conventions)?")  # fmt: skip
+        _check_arrays(arrays, {key: getattr(model, key) for key in _NAMES}, model.name, "in the model",
+                      "is the model in millimetres (torchface.conventions)?")  # fmt: skip
     except ValueError as exc:
         raise ValueError(f"the model {model.name!r} is not saved: load_face_model would refuse it: {exc}") from None
     target = Path(path)
@@ -231,15 +244,8 @@ def load_face_model(
         values[key] = torch.as_tensor(np.ascontiguousarray(arrays[key]), dtype=as_type, device=device)
     try:
         model = FaceModel(**values)  # type: ignore[arg-type]
-        mean = np.asarray(arrays["mean"], dtype=np.float64)
-        for key, named in (("animation_units", "animation_names"), ("shape_units", "shape_names")):
-            _check_displacements(np.asarray(arrays[key], dtype=np.float64), names[named], mean, key)
-        _check_blendshape_size(np.asarray(arrays["animation_units"], dtype=np.float64),
-                               np.asarray(arrays["animation_ranges"], dtype=np.float64), names["animation_names"],
-                               mean, arrays["faces"].astype(np.int64), "mm")  # fmt: skip
-        _check_surface(mean, arrays["faces"].astype(np.int64), arrays["landmark_vertices"].astype(np.int64),
-                       np.asarray(arrays["landmark_weights"], dtype=np.float64), f"{p} ({model.name})",
-                       "in the model file", "was the model saved in millimetres (torchface.conventions)?")  # fmt: skip
+        _check_arrays(arrays, names, f"{p} ({model.name})", "in the model file",
+                      "was the model saved in millimetres (torchface.conventions)?")  # fmt: skip
     except (ValueError, TypeError) as exc:
         raise InputError(f"{p}: {exc}") from None
     return model
