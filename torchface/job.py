@@ -196,6 +196,7 @@ from torchface.tracker.step import (
     TrackerState,
     TrackStatus,
     _unit_weights,
+    min_frame_side,
     pyramid_for_faces,
 )
 from torchface.visualise.overlay import axes_geometry, draw_overlay, mesh_edges, overlay_geometry
@@ -2969,7 +2970,7 @@ def _track_locked(
 
 def _check_frame_sizes(streams: list[_Stream], config: JobConfig) -> None:
     """Refuse the run where a video's frames are too small for the tracker's pyramid (``config.tracker.num_levels``
-    levels need at least ``3 * 2 ** (num_levels - 2)`` pixels a side, the check of
+    levels need :func:`~torchface.tracker.step.min_frame_side` pixels a side, the check of
     :func:`~torchface.tracker.step.check_initialise_inputs`; the levels :func:`~torchface.tracker.step.
     pyramid_for_faces` adds, and the look-ahead's and online start's, which are cut to the tracker's, fit any frame
     that passes), from the sizes the opened inputs declare. The tracker refused them only at its batch's start, after
@@ -2979,7 +2980,7 @@ def _check_frame_sizes(streams: list[_Stream], config: JobConfig) -> None:
         ValueError: the first such video, named, with its size and the least one.
     """
     levels = config.tracker.num_levels
-    side = 3 * 2 ** (levels - 2) if levels > 1 else 1  # (pyr_down needs 3 pixels a side: the tracker's rule)
+    side = min_frame_side(levels)  # (the tracker's rule)
     for s in streams:
         H, W = s.reader.info.height, s.reader.info.width
         if min(H, W) < side:

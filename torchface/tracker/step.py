@@ -1123,6 +1123,12 @@ def check_api_types(
         raise TypeError(f"state must be a TrackerState (from initialise or a previous step), got {type(state).__name__}")
 
 
+def min_frame_side(num_levels: int) -> int:
+    """The least side, in pixels, of frames a pyramid of ``num_levels`` levels takes: ``3 * 2 ** (num_levels - 2)``
+    (its coarsest level made of a level of at least 3 pixels a side, as ``pyr_down`` needs), 1 for one level."""
+    return 3 * 2 ** (num_levels - 2) if num_levels > 1 else 1
+
+
 def check_initialise_inputs(
     model: FaceModel, config: TrackerConfig, frames: Tensor, landmarks_px: Tensor, intrinsics: Intrinsics,
     weights: Tensor | None,
@@ -1143,7 +1149,7 @@ def check_initialise_inputs(
     B, K = frames.shape[0], model.num_landmarks
     if B == 0:
         raise ValueError("frames must hold at least one stream (B >= 1), got B = 0")
-    side = 3 * 2 ** (config.num_levels - 2) if config.num_levels > 1 else 1  # pyr_down needs 3 pixels a side
+    side = min_frame_side(config.num_levels)
     if min(frames.shape[-2:]) < side:  # was pyr_down's "images must be ... H, W >= 3, got (B, 1, 2, 2)"
         raise ValueError(f"frames must be at least {side}x{side} pixels for num_levels = {config.num_levels}, "
                          f"got {frames.shape[-1]}x{frames.shape[-2]} (W x H)")  # fmt: skip
