@@ -3983,7 +3983,7 @@ def _swapped_fit_hint(model: FaceModel, config: JobConfig, intr: Intrinsics, s: 
             "column)? Swap its columns, or give it a first line y,x, then track it again without --resume")
 
 
-def _warn_failed_starts(streams: list[_Stream], restarts: bool, hints: Sequence[str] = ()) -> None:
+def _warn_failed_starts(streams: list[_Stream], restarts: bool, hints: Sequence[str]) -> None:
     """Warn (one line per video) where the start from the first frame's landmarks failed, with its reason
     (:attr:`_Stream.start_failure`, :class:`~torchface.tracker.step.StartFailure`: its name and
     :attr:`~torchface.tracker.step.StartFailure.reason`, such as landmarks that no face fits, a black first frame, a
@@ -3991,8 +3991,8 @@ def _warn_failed_starts(streams: list[_Stream], restarts: bool, hints: Sequence[
     but the summary's lost count, and the warning guessed the cause among them all. ``restarts``: a detector starts
     such a stream afresh (with template management only: without it, its rows stay unusable, and the warning said it
     would be lost until the detector found a face). ``hints``: per stream, what its line adds
-    (:func:`_swapped_fit_hint`), or none."""
-    for s, hint in zip(streams, [*hints[: len(streams)], *[""] * (len(streams) - len(hints))]):
+    (:func:`_swapped_fit_hint`; ``""``: nothing)."""
+    for s, hint in zip(streams, hints, strict=True):
         if s.start_failure == StartFailure.NONE or s.replay is not None:  # (a resumed video's: said in its first run)
             continue
         then = ("it is lost until the detector finds a face it can start from" if restarts else
