@@ -400,11 +400,7 @@ class FaceTracker(DeviceCheckedModule):
         if isinstance(fit, LandmarkFit):
             fit = apply_to_tensor_fields(Tensor.detach, fit)
         refine = self.refine_first if self.config.template.enabled else None  # the online start needs management
-        self._state = None  # a failed initialisation must not leave the previous video's state to track on
-        self._dropped = None
-        self._tracking = None
-        self._added_levels = None
-        self._started = None
+        self.reset()  # a failed initialisation must not leave the previous video's state to track on
         config = self.config
         if self.pyramid == "auto":  # (the inputs checked first: their errors stay those of initialise_managed)
             check_initialise_inputs(self.model, config, frames, landmarks_px, intrinsics, weights)
