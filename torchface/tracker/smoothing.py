@@ -192,12 +192,21 @@ def _stream_mask(mask: Tensor | None, B: int, name: str, device: torch.device, d
     return mask.to(device)
 
 
+def _flag_or_complex(time: object) -> str | None:
+    """How a message says ``time`` is no real seconds: a bool (taken as 0 and 1 seconds) or a bool or complex tensor;
+    None for anything else."""
+    if isinstance(time, bool):
+        return "a bool"
+    if isinstance(time, Tensor) and (time.dtype == torch.bool or time.is_complex()):
+        return f"a {time.dtype} tensor"
+    return None
+
+
 def _seconds(time: object, B: int, name: str, device: torch.device) -> Tensor:
     """``time`` (a ``(B,)`` tensor or sequence of real seconds) as a float64 ``(B,)`` tensor on ``device``, else a
     ``TypeError`` or ``ValueError`` naming the argument ``name`` (``ResultSmoother``'s ``timestamps`` was refused as
     ``time``, and a bool one taken as 0 and 1 seconds)."""
-    if isinstance(time, bool) or (isinstance(time, Tensor) and (time.dtype == torch.bool or time.is_complex())):
-        got = f"a {time.dtype} tensor" if isinstance(time, Tensor) else "a bool"
+    if (got := _flag_or_complex(time)) is not None:
         raise TypeError(f"{name} must be real seconds, a ({B},) tensor, got {got}")
     seconds = torch.as_tensor(time, dtype=torch.float64, device=device)
     if tuple(seconds.shape) != (B,):
@@ -209,8 +218,8 @@ def _seconds(time: object, B: int, name: str, device: torch.device) -> Tensor:
 def _time_steps(dt: Tensor | float, B: int, like: Tensor) -> Tensor:
     if isinstance(dt, bool) or not isinstance(dt, (Tensor, int, float)):
         raise TypeError(f"dt must be seconds, a number or a ({B},) tensor, got {type(dt).__name__}")
-    if isinstance(dt, Tensor) and (dt.dtype == torch.bool or dt.is_complex()):  # (a bool one: 0 and 1 seconds)
-        raise TypeError(f"dt must be real seconds, a number or a ({B},) tensor, got a {dt.dtype} tensor")
+    if (got := _flag_or_complex(dt)) is not None:  # (a bool tensor: 0 and 1 seconds)
+        raise TypeError(f"dt must be real seconds, a number or a ({B},) tensor, got {got}")
     dt = torch.as_tensor(dt, dtype=like.dtype, device=like.device)
     if dt.dim() == 0:
         dt = dt.expand(B)
@@ -492,8 +501,8 @@ def smooth_pose_series(
             raise ValueError(f"{name} must be {shape}, got {getattr(x, 'shape', type(x).__name__)}")
     if success.dtype != torch.bool or any(x.dtype != torch.bool for _, x in masks):
         raise ValueError("success, restart and reanchored must be bool tensors")
-    if time.dtype == torch.bool or time.is_complex():  # (a bool series was taken as 0 and 1 seconds)
-        raise TypeError(f"time must be real seconds, got a {time.dtype} tensor")
+    if (got := _flag_or_complex(time)) is not None:  # (a bool series was taken as 0 and 1 seconds)
+        raise TypeError(f"time must be real seconds, got {got}")
     if reanchored is not None:  # (afresh at the frame after each re-anchoring step)
         after = torch.zeros_like(reanchored)
         after[:, 1:] = reanchored[:, :-1]
