@@ -59,7 +59,9 @@ from torchface.tracker.fit import (
     FitConfig, LandmarkFit, check_landmark_type, check_landmark_values, check_precisions, fit_landmarks,
     held_shape_indices, landmark_targets, prior_scale, shape_precisions, shape_prior_vector, sparse_samples,
 )
-from torchface.tracker.step import TrackerConfig, check_api_types, gray_pyramid, level_intrinsics, pixel_type_hint
+from torchface.tracker.step import (
+    TrackerConfig, check_api_types, gray_pyramid, level_intrinsics, min_frame_side, pixel_type_hint,
+)  # fmt: skip
 
 __all__ = ["LookaheadConfig", "select_keyframes", "view_yaw_deg", "refine_first_fit", "lookahead_fit"]
 
@@ -587,7 +589,7 @@ def _stream_start(
     nf = len(free_units)
     nA = A if config.fit_expression else 0
     levels = len(config.iterations)
-    side = 3 * 2 ** (levels - 2) if levels > 1 else 1  # pyr_down needs 3 pixels a side (as the tracker)
+    side = min_frame_side(levels)  # (as the tracker)
     if min(frames.shape[-2:]) < side:
         raise ValueError(f"frames must be at least {side}x{side} pixels for the refinement's {levels} pyramid "
                          f"levels (config.iterations), got {frames.shape[-1]}x{frames.shape[-2]}")  # fmt: skip
