@@ -153,6 +153,18 @@ def positive(kind: str = "a number") -> Callable[[str], float]:
     return parse
 
 
+def comma_items(text: str) -> list[str]:
+    """The items of a comma list option (``--sizes 640x480,1920x1080``), stripped, in order, each once and empty ones
+    skipped (a trailing comma, ``a,,b``): the scripts' one reading of their lists (an item given twice was run twice
+    and counted twice, ``pose_sweep,`` was an unknown name ``''``).
+
+    Example:
+        >>> comma_items(" a,b,,a, ")
+        ['a', 'b']
+    """
+    return list(dict.fromkeys(item for item in (x.strip() for x in text.split(",")) if item))
+
+
 def output_file(text: str) -> Path:
     """An argparse type: a file the script writes (``--json``, ``--save-series``, ``--save``), as a Path; a name that
     ends in a path separator (``out/``: a folder, meant or not) is a one-line error. ``Path`` drops the separator: the

@@ -29,7 +29,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the modules beside this script, however it is run
-from _argtypes import folder_problem, integer, remove_dead_partials, written_whole  # noqa: E402
+from _argtypes import comma_items, folder_problem, integer, remove_dead_partials, written_whole  # noqa: E402
 from _argtypes import run_command  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -135,7 +135,7 @@ def main() -> None:
     ap.add_argument("--cache", type=Path, default=ROOT / "out" / "bench", help="where the clips are kept")
     args = ap.parse_args()
     args.cache = args.cache.resolve()  # (the runs' working folder is their output's: a relative clip was not found)
-    sizes = list(dict.fromkeys(s.strip() for s in args.sizes.split(",") if s.strip()))  # (a size twice: once)
+    sizes = comma_items(args.sizes)  # (a size twice: once)
     if unknown := [s for s in sizes if s not in SIZES]:
         ap.error(f"--sizes: unknown {', '.join(unknown)} (known: {', '.join(SIZES)})")
     if not sizes:  # (the clips were rendered, then nothing run: a header without rows, exit status 0)

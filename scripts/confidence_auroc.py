@@ -42,7 +42,8 @@ from pathlib import Path
 
 # _argtypes first (run as a command, it makes a Ctrl-C during the heavy imports below one line, status 130)
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _argtypes import file_problem, folder_problem, frame_size, integer, output_file, written_whole  # noqa: E402
+from _argtypes import comma_items, file_problem, folder_problem, frame_size, integer, output_file  # noqa: E402
+from _argtypes import written_whole  # noqa: E402
 from _argtypes import run_command  # noqa: E402
 
 import numpy as np
@@ -171,9 +172,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     # (each once, empty items skipped, as evaluate.py reads its lists: a scenario given twice was tracked twice, a
     # variant given twice had its tables printed twice, and a trailing comma was an "unknown scenario ''")
-    names = list(SCENARIOS) if args.scenarios == "all" else [s.strip() for s in args.scenarios.split(",") if s.strip()]
-    names = list(dict.fromkeys(names))
-    variants = list(dict.fromkeys(v.strip() for v in args.variants.split(",") if v.strip()))
+    names = list(SCENARIOS) if args.scenarios == "all" else comma_items(args.scenarios)
+    variants = comma_items(args.variants)
     for v in variants:
         if v not in VARIANTS:
             parser.error(f"unknown variant {v!r}; choose from {', '.join(VARIANTS)}")

@@ -77,6 +77,7 @@ from pathlib import Path
 # _argtypes first (run as a command, it makes a Ctrl-C during the heavy imports below one line, status 130)
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the peers module beside this script, however it is run
 from _argtypes import (  # noqa: E402
+    comma_items,
     device_problem,
     file_problem,
     folder_problem,
@@ -1043,14 +1044,14 @@ def main(argv: list[str] | None = None) -> int:
         ablations = ["full"]
     else:
         # (each once: one given twice was tracked twice and both runs pooled in section (b)'s all-configurations rows)
-        ablations = list(dict.fromkeys(["full"] + [a.strip() for a in args.ablations.split(",") if a.strip()]))
+        ablations = list(dict.fromkeys(["full", *comma_items(args.ablations)]))
         for a in ablations:
             if a not in ABLATIONS:
                 parser.error(f"unknown ablation {a!r}; choose from {', '.join(ABLATIONS)}, all or none")
     if args.long_configs == "all":
         long_configs = list(LONG_CONFIGS)
     else:
-        long_configs = list(dict.fromkeys(c.strip() for c in args.long_configs.split(",") if c.strip()))
+        long_configs = comma_items(args.long_configs)
         for c in long_configs:
             if c not in LONG_CONFIGS:
                 parser.error(f"unknown long configuration {c!r}; choose from {', '.join(LONG_CONFIGS)} or all")
@@ -1079,11 +1080,11 @@ def main(argv: list[str] | None = None) -> int:
         if not (math.isfinite(sparsity) and sparsity > 0.0):
             parser.error(f"--expression-sparsity must be a number > 0 or 'none', got {args.expression_sparsity!r}")
     try:
-        noise_seeds = list(dict.fromkeys(int(x) for x in args.noise_seeds.split(",") if x.strip()))  # (each once)
+        noise_seeds = list(dict.fromkeys(int(x) for x in comma_items(args.noise_seeds)))  # (each once: 1, 01)
     except ValueError:
         parser.error(f"--noise-seeds must be a comma list of integers, got {args.noise_seeds!r}")
     try:
-        selection_seeds = list(dict.fromkeys(int(x) for x in args.selection_seeds.split(",") if x.strip()))
+        selection_seeds = list(dict.fromkeys(int(x) for x in comma_items(args.selection_seeds)))
     except ValueError:
         parser.error(f"--selection-seeds must be a comma list of integers, got {args.selection_seeds!r}")
     if any(x < 0 for x in selection_seeds):
