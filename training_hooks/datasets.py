@@ -892,7 +892,9 @@ def _check_exists(path: Path, given: str | os.PathLike[str]) -> None:
     files or .npy arrays (use FrameFolderDataset for folders)", or the other way round); ``path`` is the absolute
     path of the one ``given``."""
     if not path.exists():
-        link = " (a symbolic link to a missing target)" if path.is_symlink() else _tilde(given) or _pattern(path)
+        # (a "~" nothing expanded: torchface's words, torchface.extending.missing_path_hint)
+        link = " (a symbolic link to a missing target)" if path.is_symlink() else (missing_path_hint(given)
+                                                                                   or _pattern(path))  # fmt: skip
         raise InputError(f"{path}: no such file or folder{link}")
 
 
@@ -913,18 +915,6 @@ def _holds_images(folder: Path) -> bool:
         return bool(image_files(folder))
     except OSError:
         return False
-
-
-def _tilde(given: str | os.PathLike[str]) -> str:
-    """A hint for a missing path ``given`` starting with a ``~`` that names a home folder
-    (:func:`torchface.extending.missing_path_hint`, torchface's own words: the rule of the path settings'
-    :func:`check_no_tilde`; the paths are made absolute against the working folder, and ``~`` is expanded by a
-    shell, not by ``pathlib`` nor OpenCV: ``"~/a.avi"`` was ``<working folder>/~/a.avi``), also where
-    ``os.path.expanduser`` cannot expand it (``HOME`` unset, no password entry: it gave no hint); "" otherwise:
-    ``~draft.avi`` is a name as any other, and a ``~`` further on (``data/~/a.avi``) is one that neither a shell nor
-    ``os.path.expanduser`` expands (each part was looked at, and the hint said that ``expanduser`` would give the
-    home folder)."""
-    return missing_path_hint(given)
 
 
 def _as_numpy(points: Tensor) -> np.ndarray:
@@ -953,7 +943,7 @@ def _kept_landmarks(
         path = Path(source)
         if not path.is_file():  # (read_landmarks' words)
             problem = ("a folder, not a landmarks file" if path.is_dir()
-                       else f"no such landmarks file{_tilde(source) or _pattern(path)}")  # fmt: skip
+                       else f"no such landmarks file{missing_path_hint(source) or _pattern(path)}")  # fmt: skip
             raise InputError(f"{where}: {path}: {problem}")
         return path.absolute()  # (as the videos: read in the worker, perhaps after an os.chdir)
     if isinstance(source, Tensor):
