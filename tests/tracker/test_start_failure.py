@@ -334,12 +334,13 @@ def _tensors(obj) -> dict[str, torch.Tensor]:
 
 
 def test_the_to_of_results_and_pieces_takes_non_blocking_and_copy(result):
-    """The ``.to`` of ``TrackResult``, ``LandmarkFit``, ``NormalisedFaceLayout``, ``TexturedMesh`` and ``LightState``
-    take ``non_blocking`` and ``copy`` as ``Tensor.to`` does (by keyword, or after the device and dtype): they were
+    """The ``.to`` of ``TrackResult``, ``LandmarkFit``, ``NormalisedFaceLayout``, ``TexturedMesh``, ``LightState`` and
+    ``FaceModel`` take ``non_blocking`` and ``copy`` as ``Tensor.to`` does (by keyword, or after the device and dtype): they were
     refused ("got an unexpected keyword argument 'non_blocking'"), though the docs say they take their arguments
     as ``Tensor.to`` takes them. ``copy=True`` shares no tensor with the original; without it a tensor already there
     is shared. The last three also take a dtype first, as the first two did (a TypeError from the device check), and
-    refuse one that is not floating (``LightState.to(dtype=torch.int64)`` truncated the light)."""
+    refuse one that is not floating (``LightState.to(dtype=torch.int64)`` truncated the light). ``FaceModel.to``
+    shares their helper (it took neither flag: "unexpected keyword argument 'non_blocking'")."""
     from torchface.normalise import build_normalised_layout
     from torchface.rendering import LightState, TexturedMesh
 
@@ -347,7 +348,7 @@ def test_the_to_of_results_and_pieces_takes_non_blocking_and_copy(result):
     layout = build_normalised_layout(FaceTracker(CFG).model, 16, 0.1)
     mesh = TexturedMesh(torch.zeros(3, 3), torch.tensor([[0, 1, 2]]), torch.zeros(3, 2), torch.ones(3, 4, 4))
     light = LightState.ambient_only(torch.ones(2))
-    for obj in (result, fit, layout, mesh, light):
+    for obj in (result, fit, layout, mesh, light, FaceTracker(CFG).model):
         name = type(obj).__name__
         before = _tensors(obj)
         for moved, shared in (

@@ -21,7 +21,7 @@ import torch
 from torch import Tensor
 
 from torchface._compiling import is_compiling, is_transformed
-from torchface._device import check_to_arguments
+from torchface._device import tensor_mover
 from torchface.geometry.mesh import face_normals, vertex_normals
 
 __all__ = [
@@ -541,19 +541,19 @@ class FaceModel:
         return anim_coeffs @ self.facs_matrix.T
 
     def to(
-        self, device: torch.device | str | int | torch.dtype | None = None, dtype: torch.dtype | None = None
+        self, device: torch.device | str | int | torch.dtype | None = None, dtype: torch.dtype | None = None,
+        non_blocking: bool = False, copy: bool = False,
     ) -> "FaceModel":
         """A copy on ``device`` with floating tensors in ``dtype`` (index and mask tensors keep theirs).
         ``model.to(torch.float64)`` (a dtype first, as ``nn.Module.to`` takes it) converts the dtype alone; the
-        arguments are read as ``TrackResult.to`` reads them (:func:`~torchface._device.check_to_arguments`)."""
-        device, dtype = check_to_arguments(device, dtype)  # (a device not here: a ValueError naming those here)
+        arguments, ``non_blocking`` and ``copy`` included, are read as ``TrackResult.to`` reads them
+        (:func:`~torchface._device.tensor_mover`: ``copy=True`` shares no tensor with ``self``; without it a tensor
+        already there is shared, as ``Tensor.to`` returns it)."""
+        move = tensor_mover(device, dtype, non_blocking, copy)  # (a device not here: a ValueError naming those here)
         changes: dict[str, Any] = {}  # field name -> value, of each field's own type
         for f in fields(self):
             value = getattr(self, f.name)
-            if isinstance(value, Tensor):
-                changes[f.name] = value.to(device=device, dtype=dtype if value.is_floating_point() else None)
-            else:
-                changes[f.name] = value
+            changes[f.name] = move(value) if isinstance(value, Tensor) else value
         return FaceModel(**changes)
 
     def __repr__(self) -> str:
