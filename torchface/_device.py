@@ -173,9 +173,9 @@ def tensor_mover(
     """What the ``.to`` of a frozen dataclass of tensors (``TrackResult``, ``LandmarkFit``, ``NormalisedFaceLayout``,
     ``TexturedMesh``, ``LightState``, ``FaceModel``) does to each of its tensors: ``Tensor.to(device, dtype,
     non_blocking=..., copy=...)``, the dtype for the floating tensors alone (integer and bool ones keep theirs).
-    ``device`` and ``dtype`` are read by :func:`check_to_arguments`; ``non_blocking`` and ``copy`` are bools, as ``Tensor.to``
-    takes them: ``copy=True`` copies every tensor (none is shared with the original), ``non_blocking=True`` lets a
-    copy between the CPU and a GPU run asynchronously (values copied to the CPU are to be read after a
+    ``device`` and ``dtype`` are read by :func:`check_to_arguments`; ``non_blocking`` and ``copy`` are bools, as
+    ``Tensor.to`` takes them: ``copy=True`` copies every tensor (none is shared with the original),
+    ``non_blocking=True`` lets a copy between the CPU and a GPU run asynchronously (values copied to the CPU are to be read after a
     ``torch.cuda.synchronize()``, as ``Tensor.to``'s are). They were refused ("got an unexpected keyword argument
     'non_blocking'") although the docs say these ``.to`` take their arguments as ``Tensor.to`` does.
 
