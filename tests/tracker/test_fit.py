@@ -669,6 +669,30 @@ def test_mirrored_landmarks_fail():
     assert fit_landmarks(model, noisy[:, ibug_mirror()], CAM, config=config).status.tolist() == [2, 2, 2, 2]
 
 
+def test_expression_priors_beyond_the_tracker_bound_are_refused(model):
+    """``FitConfig.expression_prior_precision`` (and ``sparse_expression_prior_precision``) are bounded as the
+    tracker's expression priors are (:data:`~torchface.tracker.fit.MAX_UNIT_PRECISION`, 1e6, the same check and
+    wording): 1e20 was taken, and the fit of a float32 model was FAILED with no rotation. At the bound the units
+    are held at 0 as ``fit_expression=False`` holds them, and the pose is that fit's."""
+    from torchface.tracker.fit import MAX_UNIT_PRECISION
+    from torchface.tracker.step import MAX_UNIT_PRECISION as TRACKER_MAX
+
+    assert MAX_UNIT_PRECISION == TRACKER_MAX == 1e6
+    for name in ("expression_prior_precision", "sparse_expression_prior_precision"):
+        with pytest.raises(ValueError, match=rf"^{name} must be in \[0, 1e6\], got 1e\+20: at 1e6 the animation "):
+            FitConfig(fit_expression=True, **{name: 1e20})
+        with pytest.raises(ValueError, match=rf"^{name} must be in \[0, 1e6\], got 1000000\.1"):
+            FitConfig(**{name: 1e6 + 0.1})
+    R, t = poses()
+    lm = project_landmarks(model, R, t)
+    held = fit_landmarks(model, lm, CAM, config=FitConfig(fit_expression=True, expression_prior_precision=1e6,
+                                                          sparse_expression_prior_precision=1e6))  # fmt: skip
+    plain = fit_landmarks(model, lm, CAM, config=FitConfig(fit_expression=False))
+    assert held.status.tolist() == plain.status.tolist() == [0, 0, 0]
+    assert held.anim_coeffs.abs().max() < 1e-4
+    torch.testing.assert_close(held.axis_angle, plain.axis_angle, atol=1e-5, rtol=0)
+
+
 def test_landmark_indices_and_settings_are_checked(model):
     """``landmark_indices`` must be a ``(K,)`` integer tensor of the model's landmark rows: -1 fitted row 67 (the
     table counted from its end) as CONVERGED, a list was an AttributeError, a 2-D tensor a RuntimeError about

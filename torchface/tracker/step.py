@@ -48,9 +48,9 @@ from torchface.template.management import TemplateConfig
 from torchface.template.points import Template, _of_dtype, build_template
 from torchface.tracker.fast import FUNCTION_TOLERANCE, STEP_TOLERANCE, LevelCamera, robust_scale_of, solve_level
 from torchface.tracker.fit import (
-    MIN_FIT_LANDMARKS, FitConfig, LandmarkFit, _landmark_width_mm, _weights_shape_hint, _weights_type_hint,
-    check_landmark_type, check_landmark_values, check_model_landmarks, check_pixel_landmarks, fit_landmarks,
-    landmark_targets, normalised_streams,
+    MAX_UNIT_PRECISION, MIN_FIT_LANDMARKS, FitConfig, LandmarkFit, _landmark_width_mm, _weights_shape_hint,
+    _weights_type_hint, check_landmark_type, check_landmark_values, check_model_landmarks, check_pixel_landmarks,
+    check_unit_precision, fit_landmarks, landmark_targets, normalised_streams,
 )
 from torchface.tracker.inference import without_autograd
 from torchface.tracker.objective import frame_residuals, warp_points
@@ -181,14 +181,8 @@ def usable_status(status: Tensor) -> Tensor:
 #: adds the frame size to it).
 MAX_SELECTION_SEED: int = 2**63 - 1
 
-#: The strongest prior an animation unit may be given: :attr:`TrackerConfig.expression_prior_precision` and
-#: ``refine_prior_precision``, each times the unit's ``expression_prior_weights`` factor, are at most this. Measured
-#: on a rendered 160x120 head turning 20 degrees (16 frames, every unit's precision the same): at 1e4-1e6 the units
-#: are held as firmly as ``use_expression=False`` holds them (the pose within 0.02 degree of that ablation's), at
-#: 1e8-1e10 within 0.09-0.14 degree, at 1e12 3 degrees off, and from 1e14 on the pose stayed the first frame's while
-#: every frame reported success: the float32 solver's damping is relative to the largest diagonal entry of its
-#: Hessian, which the prior then is, and it swamps the pose's.
-MAX_UNIT_PRECISION = 1e6
+# (MAX_UNIT_PRECISION, the strongest prior an animation unit may be given, is torchface.tracker.fit's, which
+# FitConfig's expression priors share: imported above, torchface.tracker.step.MAX_UNIT_PRECISION as before)
 
 #: The range of :attr:`TrackerConfig.expression_sparsity`: above it the prior is the Gaussian one (``None``) for any
 #: unit within 1e6 of its centre (1e39 overflowed float32: a ``RuntimeError`` at the first step); below it every
@@ -478,13 +472,10 @@ class TrackerConfig:
         precisions = [(name, value) for name in ("expression_prior_precision", "refine_prior_precision")
                       if (value := getattr(self, name)) is not None]  # fmt: skip
         for name, value in precisions:
-            if value > MAX_UNIT_PRECISION:
-                none = " or None" if name == "refine_prior_precision" else ""
-                raise ValueError(f"{name} must be in [0, 1e6]{none}, got {value!r}: {_STRONG_PRIOR}")
+            check_unit_precision(value, name, _STRONG_PRIOR, optional=name == "refine_prior_precision")
         weights = self.expression_prior_weights or (1.0,)
         for i, w in enumerate(weights):
-            if w > MAX_UNIT_PRECISION:
-                raise ValueError(f"expression_prior_weights[{i}] must be in [0, 1e6], got {w!r}: {_STRONG_PRIOR}")
+            check_unit_precision(w, f"expression_prior_weights[{i}]", _STRONG_PRIOR)
         i = max(range(len(weights)), key=lambda k: weights[k])
         for name, value in precisions:
             if value * weights[i] > MAX_UNIT_PRECISION:
