@@ -67,13 +67,14 @@ from torchface.normalise.face import (
 )
 from torchface.solver.least_squares import SolverConfig, SolverMethod
 from torchface.tracker.fit import check_landmark_type
-from torchface.tracker.module import check_pyramid
+from torchface.tracker.module import (
+    auto_levels, check_continuing_levels, check_pyramid, continuing_config, note_auto_levels,
+)
 from torchface.tracker.params import ParamLayout
 from torchface.tracker.step import (
     TrackerConfig,
     TrackerState,
     TrackResult,
-    add_coarser_levels,
     check_frames,
     initialise,
     parameter_bounds,
@@ -391,7 +392,9 @@ class NormalisedFaceLayer(DeviceCheckedModule):
         config = self.config.tracker
         if self.config.pyramid == "auto" and landmarks_px.dim() == 3 and landmarks_px.shape[-1] == 2:
             config = pyramid_for_faces(config, landmarks_px, (intrinsics.height, intrinsics.width))
-        return _tracked(initialise)(self.model, config, frames, landmarks_px, intrinsics)
+        state, result = _tracked(initialise)(self.model, config, frames, landmarks_px, intrinsics)
+        note_auto_levels(state, config.num_levels - self.config.tracker.num_levels)  # (for forward: continuing_config)
+        return state, result
 
     def normalise(self, frames: Tensor, state: TrackerState, params: Tensor) -> NormalisedFaceResult:
         """Resample ``(B, C, H, W)`` frames with ``(B, P)`` parameters and the state's shape and camera.
@@ -439,11 +442,13 @@ class NormalisedFaceLayer(DeviceCheckedModule):
             raise ValueError(f"expected {state.params.shape[0]} frames (one per stream), got {frames.shape[0]}")
         frames = frames.to(dtype=self.model.dtype, device=self.model.device)
         cfg = self.config
-        tracker = cfg.tracker
-        if cfg.pyramid == "auto":  # the coarser levels initialise added (else: track_step's error)
-            tracker = add_coarser_levels(tracker, max(0, state.num_levels - tracker.num_levels))
+        # the coarser levels pyramid="auto" added at initialise, as FaceTracker reads them (at most those added: a
+        # config of fewer levels was made up to the state's; unknown for a copied state: the state's)
+        tracker = continuing_config(cfg.tracker, state, cfg.pyramid)
+        check_continuing_levels(cfg.tracker, tracker, state)  # (else: track_step's error)
         with torch.no_grad():
             new_state, track = _tracked(track_step)(self.model, tracker, state, frames.detach())
+        note_auto_levels(new_state, auto_levels(state))
         params = new_state.params.clone()  # the result's own: a caller's in-place change must not move the state
         if cfg.mode is LayerMode.UNROLLED:
             start = params if cfg.start is UnrollStart.TRACKED else state.params.detach()

@@ -49,9 +49,11 @@ from torchface.normalise.face import NormalisedFace
 from torchface.tracker.lookahead import LookaheadConfig, check_refine_first
 from torchface.tracker.params import ParamLayout
 from torchface.tracker.managed import initialise_managed, managed_step
-from torchface.tracker.module import check_pyramid
+from torchface.tracker.module import (
+    auto_levels, check_continuing_levels, check_pyramid, continuing_config, note_auto_levels,
+)
 from torchface.tracker.step import (
-    TrackerConfig, TrackerState, add_coarser_levels, check_frames, not_tensor_hint, pyramid_for_faces, usable_status,
+    TrackerConfig, TrackerState, check_frames, not_tensor_hint, pyramid_for_faces, usable_status,
 )  # fmt: skip
 
 __all__ = [
@@ -519,8 +521,10 @@ def track_sequence(
             )
         state = start
         first_frame = int(start.frame_index)
-        if config.pyramid == "auto":  # the coarser levels its initialisation added (else: managed_step's error)
-            tracker = add_coarser_levels(tracker, max(0, state.num_levels - tracker.num_levels))
+        # the coarser levels pyramid="auto" added at its initialisation, as FaceTracker reads them (at most those
+        # added, where noted: a FaceTracker's state, this function's; a config of fewer levels was made up to them)
+        tracker = continuing_config(tracker, state, config.pyramid)
+        check_continuing_levels(config.tracker, tracker, state)  # (else: managed_step's error)
     else:
         landmarks = _landmarks_tensor(start, model.num_landmarks)
     layout = ParamLayout(model.num_animation, NUM_ILLUMINATION_TERMS)
@@ -580,6 +584,9 @@ def track_sequence(
         frame_size=size,
         first_frame=first_frame,
     )
+    # (for a continuation from it: the levels pyramid="auto" added at the start, as FaceTracker notes its state's)
+    note_auto_levels(state, auto_levels(start) if isinstance(start, TrackerState)
+                     else tracker.num_levels - config.tracker.num_levels)  # fmt: skip
     return sequence, state
 
 

@@ -431,6 +431,27 @@ def test_a_state_of_another_dtype_is_refused_naming_the_transforms_model(clips):
         NormaliseFaces(TRACKING)(frames[1:], tracker.state)
 
 
+def test_a_state_is_continued_with_the_levels_pyramid_auto_added_and_no_more(clips):
+    """NormaliseFaces (track_sequence) continuing a state with ``pyramid="auto"`` made any config up to the state's
+    levels: a FaceTracker's 2-level state (small faces: "auto" added none), or its own, continued with a config of
+    1 level was tracked with 2, the coarsest's iterations repeated, without a word. As the tracker does
+    (``torchface.tracker.module.continuing_config``), only the levels its start added are added back: refused."""
+    from torchface.tracker import FaceTracker
+
+    clip = clips[2]
+    frames = read_video(clip.video)[:3]
+    tracker = FaceTracker(TRACKING.tracker, refine_first=None)
+    tracker.initialise(frames[:1], torch.from_numpy(clip.landmarks)[None])
+    _, own = NormaliseFaces(TRACKING).track(frames[:1], clip.landmarks)
+    fewer = replace(TRACKING, tracker=replace(TRACKING.tracker, num_levels=1, iterations=(6,)))
+    for state in (tracker.state, own):
+        assert state.num_levels == 2
+        with pytest.raises(ValueError, match="the state holds templates for 2 pyramid levels, the config has "
+                                             "num_levels = 1"):  # fmt: skip
+            NormaliseFaces(fewer)(frames[1:], state)
+    assert NormaliseFaces(TRACKING)(frames[1:], own)["face"].shape[0] == 2
+
+
 def test_shuffle_buffer_permutes_but_keeps_items(clips, config):
     videos, lms = [c.video for c in clips], [c.landmarks for c in clips]
     plain = collect(VideoDataset(videos, lms, config), 0)  # fills the cache

@@ -556,9 +556,41 @@ def test_the_layer_tracks_an_hd_clip_with_the_coarser_levels_its_face_needs():
         assert out.state.num_levels == {"auto": 4, "config": 3}[pyramid]
         rotation = axis_angle_to_matrix(out.params[0, 1:, :3].detach().double())
         errors[pyramid] = geodesic_angle_deg(rotation, truth[1:])
+        if pyramid == "auto":  # a config of fewer levels gets back the one level added, no more (two were added)
+            fewer = TrackerConfig(num_levels=2, iterations=(6, 4))
+            with pytest.raises(ValueError, match=r"4 pyramid levels, the config has num_levels = 2 and "
+                                                 r"pyramid='auto' adds the 1 coarser level\(s\) initialise added"):
+                NormalisedFaceLayer(LayerConfig(size=16, tracker=fewer))(frames[-1:], out.state)
     assert float(errors["auto"].max()) < 2.0 and float(errors["config"].max()) > 10.0, errors
     with pytest.raises(ValueError, match=r"pyramid must be one of \('auto', 'config'\), got 'on'"):
         LayerConfig(pyramid="on")
+
+
+def test_a_state_is_continued_with_the_levels_pyramid_auto_added_and_no_more():
+    """The layer's ``pyramid="auto"`` continuation made any config up to the state's levels: a 2-level state (small
+    faces: "auto" added none) forwarded by a layer of a 1-level config was tracked with 2 levels, the coarsest's
+    iterations repeated, without a word. As :class:`FaceTracker` does (``torchface.tracker.module.continuing_config``,
+    one function), it adds back only the levels initialise added, so a config of fewer levels is refused, naming
+    them; a FaceTracker's state (its added levels noted) continues with the tracker's own config, and a layer of
+    ``pyramid="config"`` refuses any config of other levels as before."""
+    from torchface.tracker import FaceTracker
+
+    frames, landmarks = _clip(32, num_frames=2)
+    two = replace(SMALL, num_levels=2, iterations=(4, 4))
+    state, _ = NormalisedFaceLayer(LayerConfig(size=G, tracker=two)).initialise(frames[:1], landmarks[:1])
+    assert state.num_levels == 2
+    for pyramid in ("auto", "config"):
+        fewer = NormalisedFaceLayer(LayerConfig(size=G, tracker=SMALL, pyramid=pyramid))
+        with pytest.raises(ValueError, match="the state holds templates for 2 pyramid levels, the config has "
+                                             "num_levels = 1"):  # fmt: skip
+            fewer(frames[1:2], state)
+    assert NormalisedFaceLayer(LayerConfig(size=G, tracker=two))(frames[1:2], state).state.num_levels == 2
+    tracker = FaceTracker(two, load_candide3(dtype=torch.float32), refine_first=None)
+    tracker.initialise(frames[:1].float(), landmarks[:1].float())
+    layer = NormalisedFaceLayer(LayerConfig(size=G, tracker=SMALL), tracker.model)
+    with pytest.raises(ValueError, match="the state holds templates for 2 pyramid levels, the config has "
+                                         "num_levels = 1"):  # fmt: skip
+        layer(frames[1:2], tracker.state)
 
 
 def test_initialise_names_intrinsics_that_are_not_intrinsics():

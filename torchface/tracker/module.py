@@ -5,6 +5,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import warnings
+import weakref
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -81,6 +82,57 @@ def check_pyramid(pyramid: object) -> None:
         raise TypeError(f"pyramid must be one of {PYRAMID_CHOICES}, got {type(pyramid).__name__}")
     if pyramid not in PYRAMID_CHOICES:
         raise ValueError(f"pyramid must be one of {PYRAMID_CHOICES}, got {pyramid!r}")
+
+
+#: The coarser levels ``pyramid="auto"`` added at the start of the sequence a state continues, by the state (the
+#: state itself does not say how many of its levels are the config's): noted by :class:`FaceTracker` and
+#: training_hooks' tracking for the states they make (:func:`note_auto_levels`), read by :func:`continuing_config`.
+#: A copy of a state (``copy.deepcopy``, ``torch.load``, ``select``) is not noted: its added levels are unknown.
+_AUTO_LEVELS: weakref.WeakKeyDictionary[TrackerState, int] = weakref.WeakKeyDictionary()
+
+
+def note_auto_levels(state: TrackerState, added: int | None) -> None:
+    """Note that ``pyramid="auto"`` added ``added`` coarser levels at the start of the sequence ``state`` continues
+    (None: unknown, nothing noted), for :func:`continuing_config`."""
+    if added is not None:
+        _AUTO_LEVELS[state] = added
+
+
+def auto_levels(state: TrackerState) -> int | None:
+    """The coarser levels ``pyramid="auto"`` added at the start of the sequence ``state`` continues, as noted
+    (:func:`note_auto_levels`); None where unknown."""
+    return _AUTO_LEVELS.get(state)
+
+
+def continuing_config(
+    config: TrackerConfig, state: TrackerState, pyramid: str, added: int | None = None
+) -> TrackerConfig:
+    """The settings a sequence goes on with from ``state``, given ``config`` (set mid-sequence, or the one it started
+    with): with ``pyramid="auto"``, ``config`` with the coarser levels the state holds beyond its ``num_levels``, at
+    most ``added``, those ``"auto"`` added at the sequence's start (None: :func:`auto_levels` of ``state``, and any
+    number where that is unknown); ``config`` itself with ``"config"``. :class:`FaceTracker`'s and training_hooks'
+    continuations (``NormalisedFaceLayer.forward``, ``track_sequence`` from a state) read the levels so; a config
+    of other levels than the state's is refused by :func:`check_continuing_levels`."""
+    extra = state.num_levels - config.num_levels if pyramid == "auto" else 0
+    added = auto_levels(state) if added is None else added
+    if added is not None:  # only those the start added (a config of fewer levels is not made up to the state's)
+        extra = min(extra, added)
+    return add_coarser_levels(config, max(0, extra))
+
+
+def check_continuing_levels(config: TrackerConfig, run: TrackerConfig, state: TrackerState) -> None:
+    """Refuse to continue ``state`` with ``run`` (:func:`continuing_config` of ``config``) where ``pyramid="auto"``
+    added levels to ``config`` and ``run`` still has other levels than the state: the message names the config's
+    levels and those added, which the user did not set (:func:`~torchface.tracker.step.check_state_levels`, at the
+    step, refuses the rest)."""
+    levels, added = state.num_levels, run.num_levels - config.num_levels
+    if added and run.num_levels != levels:
+        raise ValueError(
+            f"the state holds templates for {levels} pyramid levels, the config has num_levels = "
+            f"{config.num_levels} and pyramid='auto' adds the {added} coarser level(s) initialise added for "
+            f"large faces: set a config of {levels - added} levels (or a changed copy of tracking_config), or "
+            "initialise again"
+        )
 
 
 def _check_setting(name: str, value: Any) -> None:
@@ -232,7 +284,11 @@ class FaceTracker(DeviceCheckedModule):
     def state(self) -> TrackerState | None:
         """The tracking state after the last call (None before :meth:`initialise`). The next call hands it to
         :func:`~torchface.tracker.managed.managed_step` with ``donate=True``, which may write into its template
-        tensors: keep a ``copy.deepcopy`` of a state you want to use again."""
+        tensors: keep a ``copy.deepcopy`` of a state you want to use again. The coarser levels ``pyramid="auto"``
+        added at :meth:`initialise` are noted for it, so that training_hooks continuing it reads its levels as the
+        tracker does (:func:`continuing_config`; a copy of it is not noted)."""
+        if self._state is not None:
+            note_auto_levels(self._state, self._added_levels)
         return self._state
 
     @property
@@ -258,10 +314,8 @@ class FaceTracker(DeviceCheckedModule):
         if self.config is not base:  # a config set mid-sequence: with the state's levels beyond its own ("auto",
             # as training_hooks continues a state; counted from the state: a config of the state's levels, e.g. a
             # changed tracking_config, got the added levels again, 5 for a 4-level state, and every step failed)
-            extra = self._state.num_levels - self.config.num_levels if self.pyramid == "auto" else 0
-            if self._added_levels is not None:  # only those initialise added (unknown: a tracker pickled before)
-                extra = min(extra, self._added_levels)
-            run = add_coarser_levels(self.config, max(0, extra))
+            # (only those initialise added; unknown: a tracker pickled before, any)
+            run = continuing_config(self.config, self._state, self.pyramid, self._added_levels)
             if self._started is not None:  # (INITIALISE_SETTINGS: the sequence's own, as the state is made with them)
                 run = keep_initialise_settings(self._started, run)
             self._tracking = (self.config, run)
@@ -428,15 +482,8 @@ class FaceTracker(DeviceCheckedModule):
             raise RuntimeError(f"call initialise(frames, landmarks) before tracking{self._why_none()}")
         config = self.tracking_config
         assert config is not None
-        levels, added = self._state.num_levels, config.num_levels - self.config.num_levels
-        if added and config.num_levels != levels:  # (check_state_levels would name the config's levels with those
-            # pyramid="auto" added, which the user did not set)
-            raise ValueError(
-                f"the state holds templates for {levels} pyramid levels, the config has num_levels = "
-                f"{self.config.num_levels} and pyramid='auto' adds the {added} coarser level(s) initialise added for "
-                f"large faces: set a config of {levels - added} levels (or a changed copy of tracking_config), or "
-                "initialise again"
-            )
+        # (check_state_levels would name the config's levels with those pyramid="auto" added, not set by the user)
+        check_continuing_levels(self.config, config, self._state)
         self._state, result = managed_step(self.model, config, self._state, frames, self.detector, donate=True)
         return result
 
