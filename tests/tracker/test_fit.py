@@ -248,6 +248,26 @@ def test_per_unit_shape_prior(model):
     assert float(fit.rms_px.min()) > 0.1  # the held unit leaves a residual: the prior did hold it
 
 
+def test_a_shape_prior_of_another_unit_count_is_told_alike_by_the_fit_and_the_lookahead(model):
+    """A ``shape_prior_precision`` tuple of other than one value per shape unit: ``fit_landmarks`` (through
+    ``shape_prior_vector``) and ``lookahead.check_model_units`` share one check (``check_shape_prior_count``), so
+    their messages differ by the setting's name alone (the fit's lacked the look-ahead's "(one value for all of
+    them, or one per unit)")."""
+    from torchface.tracker import LookaheadConfig
+    from torchface.tracker.lookahead import check_model_units
+
+    R, t = poses()
+    lm = project_landmarks(model, R, t)
+    S = model.num_shape
+    with pytest.raises(ValueError) as fitted:
+        fit_landmarks(model, lm, CAM, config=FitConfig(shape_prior_precision=(2.0,) * (S - 1)))
+    with pytest.raises(ValueError) as looked:
+        check_model_units(LookaheadConfig(shape_prior_precision=(2.0,) * (S - 1)), model, "lookahead")
+    said = f"shape_prior_precision has {S - 1} values; the model has {S} shape units (one value for all of them, or " \
+        "one per unit)"
+    assert str(fitted.value) == said and str(looked.value) == f"lookahead.{said}"
+
+
 def test_batch_equals_single_samples(model):
     R, t = poses()
     lm = project_landmarks(model, R, t) + torch.randn(3, 68, 2, generator=torch.Generator().manual_seed(3), dtype=D)
@@ -431,7 +451,7 @@ def test_bad_inputs_raise(model):
         fit_landmarks(model, torch.zeros(1, 2, 68, dtype=D), CAM)
     with pytest.raises(ValueError, match=r"\(B, 5, 2\)"):
         fit_landmarks(model, lm, CAM, landmark_indices=torch.arange(5))
-    with pytest.raises(ValueError, match=r"weights must be \(B, K\)"):
+    with pytest.raises(ValueError, match=r"weights must be a \(B, K\) = \(1, 68\) tensor or None, got shape \(1, 67\)"):
         fit_landmarks(model, lm, CAM, torch.ones(1, 67, dtype=D))
     # One-line TypeErrors naming the argument (numpy landmarks were a ValueError "got ndarray", numpy or list
     # weights and None intrinsics an AttributeError, bool landmarks were fitted as pixels 0 and 1).
@@ -440,7 +460,7 @@ def test_bad_inputs_raise(model):
     with pytest.raises(TypeError, match=r"landmarks_px must be real pixel coordinates .*bool"):
         fit_landmarks(model, torch.ones(1, 68, 2, dtype=torch.bool), CAM)
     for bad in (torch.ones(1, 68).numpy(), [[1.0] * 68]):
-        with pytest.raises(TypeError, match=r"weights must be a \(1, 68\) tensor or None"):
+        with pytest.raises(TypeError, match=r"weights must be a \(B, K\) = \(1, 68\) tensor or None"):
             fit_landmarks(model, lm, CAM, bad)  # type: ignore[arg-type]
     # (complex weights were torch's NotImplementedError '"lt_cpu" not implemented for 'ComplexFloat'')
     with pytest.raises(TypeError, match=r"^weights must be real numbers >= 0 .*, got torch.complex64"):

@@ -1634,9 +1634,9 @@ def test_pyramid_for_faces_leaves_out_the_points_the_fit_ignores():
                                              r"stream\(s\) \[1, 2, 3\]\)"):
             pyramid_for_faces(base, lm, (1080, 1920), weights)
     assert pyramid_for_faces(base, lm, (1080, 1920), torch.tensor([[True, True, False]] * 4)) is base
-    with pytest.raises(ValueError, match=r"weights must be \(4, 3\) \(B, K\), got \(4, 2\)"):
+    with pytest.raises(ValueError, match=r"^weights must be a \(B, K\) = \(4, 3\) tensor or None, got shape \(4, 2\)$"):
         pyramid_for_faces(base, lm, (1080, 1920), torch.ones(4, 2))
-    with pytest.raises(TypeError, match="weights must be a .B, K. tensor or None, got list"):
+    with pytest.raises(TypeError, match=r"^weights must be a \(B, K\) = \(4, 3\) tensor or None, got list"):
         pyramid_for_faces(base, lm, (1080, 1920), [[1.0, 1.0, 0.0]] * 4)
 
 

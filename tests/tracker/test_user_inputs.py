@@ -220,19 +220,45 @@ def test_landmark_weights_of_one_stream_or_with_a_trailing_axis_are_told_how_to_
 
     frames, lm = clip
     w = torch.ones(68)
-    with pytest.raises(ValueError, match=r"^weights must be \(1, 68\), got \(68,\) \(one per landmark: weights\[None\]\)$"):
+    with pytest.raises(ValueError, match=r"^weights must be a \(B, K\) = \(1, 68\) tensor or None, got shape \(68,\) "
+                                        r"\(one per landmark: weights\[None\]\)$"):
         FaceTracker(CFG).initialise(frames[:1], lm[None], weights=w)
-    with pytest.raises(ValueError, match=r"^weights must be \(2, 68\), got \(68,\) \(one per landmark: "
-                                        r"weights\[None\].expand\(2, -1\) for every stream\)$"):  # fmt: skip
+    with pytest.raises(ValueError, match=r"^weights must be a \(B, K\) = \(2, 68\) tensor or None, got shape \(68,\) "
+                                        r"\(one per landmark: weights\[None\].expand\(2, -1\) for every stream\)$"):
         FaceTracker(CFG).initialise(frames[:2], torch.stack([lm, lm]), weights=w)
-    with pytest.raises(ValueError, match=r"^weights must be \(1, 68\), got \(1, 68, 1\) \(a trailing axis: "
-                                        r"weights\[..., 0\]\)$"):  # fmt: skip
+    with pytest.raises(ValueError, match=r"^weights must be a \(B, K\) = \(1, 68\) tensor or None, got shape "
+                                        r"\(1, 68, 1\) \(a trailing axis: weights\[..., 0\]\)$"):
         FaceTracker(CFG).initialise(frames[:1], lm[None], weights=w[None, :, None])
-    with pytest.raises(ValueError, match=r"^weights must be \(B, K\) = \(1, 68\), got \(68,\) \(one per landmark"):
+    with pytest.raises(ValueError, match=r"^weights must be a \(B, K\) = \(1, 68\) tensor or None, got shape "
+                                        r"\(68,\) \(one per"):
         fit_landmarks(load_candide3(), lm[None], Intrinsics.default(W, H), weights=w)
     result = FaceTracker(CFG).initialise(frames[:2], torch.stack([lm, lm]), weights=w[None].expand(2, -1))
     assert result.status.tolist() == [CONVERGED, CONVERGED]
     assert int(FaceTracker(CFG).initialise(frames[:1], lm[None], weights=w[None, :, None][..., 0]).status) == CONVERGED
+
+
+def test_landmark_weights_of_another_shape_are_refused_alike_by_each_entry_point(clip):
+    """``initialise``, ``fit_landmarks`` and ``pyramid_for_faces`` check the landmark weights' shape with one function
+    (``torchface.tracker.fit.check_weights_shape``), so that the same weights are told the same thing: each had worded
+    the shape its own way ("weights must be (1, 68)", "(B, K) = (1, 68)", "(1, 68) (B, K)", the last without the
+    hint of how to make them)."""
+    from torchface.geometry import Intrinsics
+    from torchface.model import load_candide3
+    from torchface.tracker import fit_landmarks, pyramid_for_faces
+
+    frames, lm = clip
+    calls = (
+        lambda w: FaceTracker(CFG).initialise(frames[:1], lm[None], weights=w),
+        lambda w: fit_landmarks(load_candide3(), lm[None], Intrinsics.default(W, H), weights=w),
+        lambda w: pyramid_for_faces(CFG, lm[None], (H, W), w),
+    )
+    for bad, error in ((torch.ones(68), ValueError), (torch.ones(1, 68, 1), ValueError), ([[1.0] * 68], TypeError)):
+        said = set()
+        for call in calls:
+            with pytest.raises(error, match=r"^weights must be a \(B, K\) = \(1, 68\) tensor or None, got ") as info:
+                call(bad)
+            said.add(str(info.value))
+        assert len(said) == 1, said
 
 
 def test_landmark_weights_that_are_not_a_tensor_are_told_how_to_make_one(clip):
@@ -247,8 +273,8 @@ def test_landmark_weights_that_are_not_a_tensor_are_told_how_to_make_one(clip):
 
     frames, lm = clip
     w = np.ones(68)
-    with pytest.raises(TypeError, match=r"^weights must be a \(1, 68\) tensor or None, got ndarray \(a NumPy array: "
-                                        r"torch\.from_numpy\(weights\)\[None\]\)$"):
+    with pytest.raises(TypeError, match=r"^weights must be a \(B, K\) = \(1, 68\) tensor or None, got ndarray \(a "
+                                        r"NumPy array: torch\.from_numpy\(weights\)\[None\]\)$"):
         FaceTracker(CFG).initialise(frames[:1], lm[None], weights=w)  # type: ignore[arg-type]
     with pytest.raises(TypeError, match=r"got ndarray \(a NumPy array: torch\.from_numpy\(weights\)\[None\]\.expand"
                                         r"\(2, -1\)\)$"):

@@ -335,6 +335,21 @@ def prior_scale(config: FitConfig, intrinsics: Intrinsics) -> float:
     return scale
 
 
+def check_shape_prior_count(
+    precision: float | tuple[float, ...], num_shape: int, name: str = "shape_prior_precision"
+) -> None:
+    """Refuse a shape prior setting ``name`` (:attr:`FitConfig.shape_prior_precision`,
+    :attr:`~torchface.tracker.lookahead.LookaheadConfig.shape_prior_precision`) that is a tuple of other than one
+    value per shape unit of a model of ``num_shape`` (one number passes: it is every unit's).
+
+    Raises:
+        ValueError: a tuple whose length is not ``num_shape``, naming both.
+    """
+    if isinstance(precision, tuple) and len(precision) != num_shape:
+        raise ValueError(f"{name} has {len(precision)} values; the model has {num_shape} shape units (one value for "
+                         "all of them, or one per unit)")  # fmt: skip
+
+
 def shape_prior_vector(
     precision: float | tuple[float, ...], num_shape: int, dtype: torch.dtype, device: torch.device | str | None
 ) -> Tensor:
@@ -342,13 +357,10 @@ def shape_prior_vector(
     or one per unit).
 
     Raises:
-        ValueError: a tuple whose length is not ``num_shape``.
+        ValueError: a tuple whose length is not ``num_shape`` (:func:`check_shape_prior_count`).
     """
     if isinstance(precision, tuple):
-        if len(precision) != num_shape:
-            raise ValueError(
-                f"shape_prior_precision has {len(precision)} values; the model has {num_shape} shape units"
-            )
+        check_shape_prior_count(precision, num_shape)
         return torch.tensor(precision, dtype=dtype, device=device)
     return torch.full((num_shape,), float(precision), dtype=dtype, device=device)
 
@@ -504,6 +516,29 @@ def _weights_type_hint(weights: object, batch: int, count: int) -> str:
     if isinstance(weights, (list, tuple)):
         return f" (a {type(weights).__name__}: torch.tensor(weights), laid out ({batch}, {count}))"
     return ""
+
+
+def check_weights_shape(weights: object, batch: int, count: int) -> None:
+    """Refuse landmark weights that are not a ``(batch, count)`` tensor (None passes): one ``TypeError`` or
+    ``ValueError`` and one message, with how to make them where it can tell (:func:`fit_landmarks`,
+    :func:`~torchface.tracker.step.check_initialise_inputs` and
+    :func:`~torchface.tracker.step.pyramid_for_faces` call it; each had worded the shape its own way).
+
+    Example:
+        >>> check_weights_shape(torch.ones(68), 1, 68)  # doctest: +ELLIPSIS
+        Traceback (most recent call last):
+            ...
+        ValueError: weights must be a (B, K) = (1, 68) tensor or None, got shape (68,) (one per landmark: ...
+    """
+    if weights is None:
+        return
+    if not isinstance(weights, Tensor):  # (a list or a NumPy array: an AttributeError)
+        raise TypeError(f"weights must be a (B, K) = ({batch}, {count}) tensor or None, got {type(weights).__name__}"
+                        f"{_weights_type_hint(weights, batch, count)}")  # fmt: skip
+    got = tuple(weights.shape)
+    if got != (batch, count):
+        raise ValueError(f"weights must be a (B, K) = ({batch}, {count}) tensor or None, got shape {got}"
+                         f"{_weights_shape_hint(got, batch, count)}")  # fmt: skip
 
 
 def check_landmark_values(
@@ -697,12 +732,7 @@ def _check_landmarks(
                 if got[1:] == (k, 3) else "")  # fmt: skip
         raise ValueError(f"landmarks_px must be (B, {k}, 2) pixel coordinates, got {got}{hint}")
     B = landmarks_px.shape[0]
-    if weights is not None and not isinstance(weights, Tensor):  # a list or numpy array: an AttributeError
-        raise TypeError(f"weights must be a ({B}, {k}) tensor or None, got {type(weights).__name__}"
-                        f"{_weights_type_hint(weights, B, k)}")  # fmt: skip
-    if weights is not None and weights.shape != (B, k):
-        raise ValueError(f"weights must be (B, K) = ({B}, {k}), got {tuple(weights.shape)}"
-                         f"{_weights_shape_hint(tuple(weights.shape), B, k)}")  # fmt: skip
+    check_weights_shape(weights, B, k)
     check_landmark_values(landmarks_px, weights)
     # contiguous: the fit's sums over the points follow the memory order (a transposed view's fit was 5e-4 mm off)
     lm = landmarks_px.to(dtype=dtype, device=device).contiguous()

@@ -56,8 +56,9 @@ from torchface.rendering.rasterizer import rasterize_coverage
 from torchface.rendering.visibility import points_visible
 from torchface.template.points import gather_face_attributes, point_normals, select_template_pixels
 from torchface.tracker.fit import (
-    FitConfig, LandmarkFit, check_landmark_type, check_landmark_values, check_precisions, fit_landmarks,
-    held_shape_indices, landmark_targets, prior_scale, shape_precisions, shape_prior_vector, sparse_samples,
+    FitConfig, LandmarkFit, check_landmark_type, check_landmark_values, check_precisions, check_shape_prior_count,
+    fit_landmarks, held_shape_indices, landmark_targets, prior_scale, shape_precisions, shape_prior_vector,
+    sparse_samples,
 )
 from torchface.tracker.step import (
     TrackerConfig, check_api_types, gray_pyramid, level_intrinsics, min_frame_side, pixel_type_hint,
@@ -221,10 +222,7 @@ def check_model_units(config: LookaheadConfig, model: FaceModel, name: str = "re
     S = model.num_shape
     if config.shape_units is not None and any(s >= S for s in config.shape_units):
         raise ValueError(f"{name}.shape_units must be < {S} (the model's shape units), got {config.shape_units}")
-    precision = config.shape_prior_precision
-    if isinstance(precision, tuple) and len(precision) != S:
-        raise ValueError(f"{name}.shape_prior_precision has {len(precision)} values; the model has {S} shape units "
-                         "(one value for all of them, or one per unit)")  # fmt: skip
+    check_shape_prior_count(config.shape_prior_precision, S, f"{name}.shape_prior_precision")
 
 
 def levels_of(config: LookaheadConfig, num_levels: int, name: str = "iterations") -> LookaheadConfig:

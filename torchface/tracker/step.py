@@ -48,9 +48,9 @@ from torchface.template.management import TemplateConfig
 from torchface.template.points import Template, _of_dtype, build_template
 from torchface.tracker.fast import FUNCTION_TOLERANCE, STEP_TOLERANCE, LevelCamera, robust_scale_of, solve_level
 from torchface.tracker.fit import (
-    MAX_UNIT_PRECISION, MIN_FIT_LANDMARKS, FitConfig, LandmarkFit, _landmark_width_mm, _weights_shape_hint,
-    _weights_type_hint, check_landmark_type, check_landmark_values, check_model_landmarks, check_pixel_landmarks,
-    check_unit_precision, fit_landmarks, landmark_targets, normalised_streams,
+    MAX_UNIT_PRECISION, MIN_FIT_LANDMARKS, FitConfig, LandmarkFit, _landmark_width_mm, check_landmark_type,
+    check_landmark_values, check_model_landmarks, check_pixel_landmarks, check_unit_precision, check_weights_shape,
+    fit_landmarks, landmark_targets, normalised_streams,
 )
 from torchface.tracker.inference import without_autograd
 from torchface.tracker.objective import frame_residuals, warp_points
@@ -1173,12 +1173,7 @@ def check_initialise_inputs(
             hint = f" ({other})"
         raise ValueError(f"landmarks_px must be (B, {K}, 2), the model's {K} landmarks (NaN rows for missing ones), "
                          f"got {tuple(landmarks_px.shape)}{hint}")  # fmt: skip
-    if weights is not None and not isinstance(weights, Tensor):
-        raise TypeError(f"weights must be a ({B}, {K}) tensor or None, got {type(weights).__name__}"
-                        f"{_weights_type_hint(weights, B, K)}")  # fmt: skip
-    if weights is not None and tuple(weights.shape) != (B, K):
-        raise ValueError(f"weights must be ({B}, {K}), got {tuple(weights.shape)}"
-                         f"{_weights_shape_hint(tuple(weights.shape), B, K)}")  # fmt: skip
+    check_weights_shape(weights, B, K)
     if weights is not None:
         check_holds_data(weights, "weights")
     check_landmark_values(landmarks_px, weights)  # (infinite or half-NaN rows; NaN, infinite, negative weights)
@@ -1243,11 +1238,7 @@ def pyramid_for_faces(
     check_landmark_type(landmarks_px, "(B, K, 2)")
     if landmarks_px.dim() != 3 or landmarks_px.shape[-1] != 2:
         raise ValueError(f"landmarks_px must be (B, K, 2), got {tuple(landmarks_px.shape)}")
-    if weights is not None and not isinstance(weights, Tensor):
-        raise TypeError(f"weights must be a (B, K) tensor or None, got {type(weights).__name__}"
-                        f"{_weights_type_hint(weights, *landmarks_px.shape[:2])}")  # fmt: skip
-    if weights is not None and tuple(weights.shape) != tuple(landmarks_px.shape[:2]):
-        raise ValueError(f"weights must be {tuple(landmarks_px.shape[:2])} (B, K), got {tuple(weights.shape)}")
+    check_weights_shape(weights, *landmarks_px.shape[:2])
     check_landmark_values(landmarks_px, weights)
     points = landmarks_px.detach().to(torch.float64)
     # (B, K, 1): the points the fit uses (finite, of positive weight: landmark_targets)
