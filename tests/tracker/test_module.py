@@ -279,6 +279,48 @@ def test_a_failed_load_state_dict_leaves_the_tracker_as_it_was(model, three_stre
     assert tracker.state is None and float(tracker.detector.scale.detach()) == 2.0
 
 
+def test_load_hooks_run_once_on_the_tracker_and_a_failed_load_with_hooks_changes_nothing(model, three_streams):
+    """Load hooks registered on the tracker or its detector ran twice per ``load_state_dict``, the first time on the
+    check's stand-in (handed it as the module), even for a load the check then refused. They run once, on the
+    tracker's own modules; a pre-hook that renames an old checkpoint's key (a load the check alone refuses) loads;
+    a load with hooks that fails leaves the sequence and the detector's weights as they were. A parent's failed load
+    still makes the tracker forget its sequence (torch tells no child that the load failed): a ``copy.copy`` kept
+    before puts it back."""
+    frames, lm = three_streams
+    tracker = FaceTracker(CFG, model, detector=_NoFaces(), refine_first=None)
+    tracker.initialise(frames[:, 0], lm)
+    state, calls = tracker.state, []
+    tracker.register_load_state_dict_post_hook(lambda module, keys: calls.append(module is tracker))
+    tracker.detector.register_load_state_dict_post_hook(lambda module, keys: calls.append(module is tracker.detector))
+    for bad, message in (({"detector.scale": torch.full((), 2.0), "x": torch.zeros(1)}, 'Unexpected key.*"x"'),
+                         ({"detector.scale": torch.ones(2)}, "size mismatch")):  # fmt: skip
+        with pytest.raises(RuntimeError, match=message):
+            tracker.load_state_dict(bad)
+        assert calls == [True, True] and tracker.state is state and float(tracker.detector.scale.detach()) == 1.0
+        calls.clear()
+
+    def renamed(state_dict, prefix, *args):  # (an old checkpoint's name of the weight)
+        if prefix + "detector.gain" in state_dict:
+            state_dict[prefix + "detector.scale"] = state_dict.pop(prefix + "detector.gain")
+
+    tracker._register_load_state_dict_pre_hook(renamed)
+    for assign in (False, True):
+        with pytest.raises(RuntimeError, match='Unexpected key.*"x"'):
+            tracker.load_state_dict({"detector.gain": torch.full((), 2.0), "x": torch.zeros(1)}, assign=assign)
+        assert tracker.state is state and float(tracker.detector.scale.detach()) == 1.0
+    calls.clear()
+    tracker.load_state_dict({"detector.gain": torch.full((), 3.0)})
+    assert calls == [True, True] and tracker.state is None and float(tracker.detector.scale.detach()) == 3.0
+    tracker.initialise(frames[:, 0], lm)
+    parent = torch.nn.Sequential(tracker, torch.nn.Linear(2, 2))
+    kept, reference = copy.copy(tracker), copy.copy(tracker)
+    with pytest.raises(RuntimeError, match='Missing key.*"1.bias"'):
+        parent.load_state_dict({"0.detector.scale": torch.ones(()), "1.weight": torch.zeros(2, 2)})
+    assert tracker.state is None and kept.state is not None
+    parent[0] = kept
+    assert_same(reference(frames[:, 1]), parent[0](frames[:, 1]))
+
+
 class _LazyNoFaces(_NoFaces):
     """:class:`_NoFaces` holding a lazy layer, its weights made at the first call or load."""
 

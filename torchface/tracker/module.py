@@ -365,24 +365,58 @@ class FaceTracker(DeviceCheckedModule):
         was, its tracked sequence and a detector network's weights unchanged (it forgot the sequence, and torch had
         copied the weights that matched, before raising). The check loads into a stand-in whose tensors are empty
         ``meta`` ones (no data copied). Loaded by a module that holds it, the tracker forgets its sequence as torch
-        reaches it, whatever else that load refuses."""
-        self._check_loads(state_dict, strict, assign)
+        reaches it, whatever else that load refuses: torch loads a module's children one by one and raises once it has
+        loaded them all, and no child is told whether the load it is part of failed (keep ``copy.copy(tracker)``,
+        which copies the tracked sequence, to put it back after a failed load). Load hooks registered on the tracker
+        or its detector (``register_load_state_dict_post_hook``) run once, on the tracker: the check runs none (they
+        ran on the stand-in too, which they were handed as the module); where the check refuses a load that hooks
+        may make good (e.g. by renaming keys), the load itself decides, with a copy of the detector's weights to put
+        back if it fails."""
+        checked = self._check_loads(state_dict, strict, assign)
         kept = (self._state, self._dropped, self._tracking)
+        weights = [] if checked else self._weights_kept()
         try:
             return super().load_state_dict(state_dict, strict, assign)
         except BaseException:
             self._state, self._dropped, self._tracking = kept
+            with torch.no_grad():  # (assign=True put other tensors in the tables; assign=False copied into these)
+                for table, name, tensor, data in weights:
+                    table[name] = tensor
+                    tensor.copy_(data)
             raise
 
-    def _check_loads(self, state_dict: Mapping[str, Any], strict: bool, assign: bool) -> None:
+    def _weights_kept(self) -> list[tuple[dict[str, Any], str, Tensor, Tensor]]:
+        """``(table, name, tensor, copy of its data)`` of each parameter and buffer of the tracker's submodules (a
+        detector network's), for :meth:`load_state_dict` to put back after a load that fails unchecked (uninitialised
+        lazy ones left out: a load makes them)."""
+        kept = []
+        for module in self.modules():
+            for table in (module._parameters, module._buffers):
+                for name, tensor in table.items():
+                    if tensor is not None and not isinstance(tensor, torch.nn.parameter.UninitializedTensorMixin):
+                        kept.append((table, name, tensor, tensor.detach().clone()))
+        return kept
+
+    def _check_loads(self, state_dict: Mapping[str, Any], strict: bool, assign: bool) -> bool:
         """Raise what ``load_state_dict(state_dict, strict, assign)`` would raise, changing nothing: the load made
         into a stand-in, the tracker's settings with no tracked state, whose submodules (a detector network) are
-        copies with empty ``meta`` tensors of their parameters' and buffers' shapes and dtypes."""
+        copies with empty ``meta`` tensors of their parameters' and buffers' shapes and dtypes. The stand-in runs no
+        load hooks (a hook with effects, a counter or a hook acting on the tracker, ran twice, the first time during
+        the check, even for a load then refused); where the tracker or a submodule has some and the check fails, the
+        load is left to torch (a hook may rename keys or clear missing ones: the check cannot tell), and it returns
+        False (True otherwise)."""
         if not isinstance(state_dict, Mapping):
-            return  # (torch's own TypeError, before anything changes)
+            return True  # (torch's own TypeError, before anything changes)
         memo: dict[int, Any] = {}
+        hooked = False
+        for module in self.modules():  # (the stand-in's copies get empty hook tables: memo, nothing of them copied)
+            for table in (module._load_state_dict_pre_hooks, module._load_state_dict_post_hooks):
+                hooked = hooked or bool(table)
+                memo[id(table)] = type(table)()
         probe = self.__class__.__new__(self.__class__)
         probe.__dict__.update(self.__dict__)
+        probe.__dict__.update(_load_state_dict_pre_hooks=type(self._load_state_dict_pre_hooks)(),
+                              _load_state_dict_post_hooks=type(self._load_state_dict_post_hooks)())  # fmt: skip
         try:  # (an uninitialised lazy parameter has no meta twin: empty_like's ValueError refused a load torch takes)
             for t in [*self.parameters(), *self.buffers()]:
                 empty = torch.empty_like(t, device="meta")
@@ -391,11 +425,17 @@ class FaceTracker(DeviceCheckedModule):
                 {name: copy.deepcopy(self.__dict__[name], memo) for name in ("_modules", "_parameters", "_buffers")}
             )
         except Exception:  # (a detector network holding what cannot be copied: loaded unchecked, the sequence kept)
-            return
+            return True
         probe.__dict__.update(_state=None, _dropped=None, _tracking=None)
         with warnings.catch_warnings():  # ("copying from a non-meta parameter ... to a meta parameter ... a no-op")
             warnings.simplefilter("ignore")
-            torch.nn.Module.load_state_dict(probe, state_dict, strict, assign)
+            try:
+                torch.nn.Module.load_state_dict(probe, state_dict, strict, assign)
+            except Exception:
+                if not hooked:
+                    raise
+                return False
+        return True
 
     def _load_from_state_dict(
         self, state_dict: Mapping[str, Any], prefix: str, local_metadata: dict[str, Any], strict: bool,
