@@ -336,11 +336,12 @@ def prior_scale(config: FitConfig, intrinsics: Intrinsics) -> float:
 
 
 def check_shape_prior_count(
-    precision: float | tuple[float, ...], num_shape: int, name: str = "shape_prior_precision"
+    precision: float | tuple[float, ...] | None, num_shape: int, name: str = "shape_prior_precision"
 ) -> None:
     """Refuse a shape prior setting ``name`` (:attr:`FitConfig.shape_prior_precision`,
     :attr:`~torchface.tracker.lookahead.LookaheadConfig.shape_prior_precision`) that is a tuple of other than one
-    value per shape unit of a model of ``num_shape`` (one number passes: it is every unit's).
+    value per shape unit of a model of ``num_shape`` (one number passes: it is every unit's; so does None, the
+    look-ahead's "the landmark fit's").
 
     Raises:
         ValueError: a tuple whose length is not ``num_shape``, naming both.

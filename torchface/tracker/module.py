@@ -393,7 +393,7 @@ class FaceTracker(DeviceCheckedModule):
         for module in self.modules():
             for table in (module._parameters, module._buffers):
                 for name, tensor in table.items():
-                    if tensor is not None and not isinstance(tensor, torch.nn.parameter.UninitializedTensorMixin):
+                    if tensor is not None and not torch.nn.parameter.is_lazy(tensor):
                         kept.append((table, name, tensor, tensor.detach().clone()))
         return kept
 
