@@ -82,7 +82,7 @@ def test_script_arguments_that_would_fail_late_are_one_line_errors(tmp_path, cap
         (["--long-frames", "0"], "--long-frames must be >= 100"),
         (["--json", str(tmp_path / "jdir")], "not a file path"),
         (["--mediapipe-python", str(tmp_path / "nope")], "no such executable"),
-        (["--threads", "0"], "--threads must be >= 1"),
+        (["--threads", "0"], "--threads: must be an integer >= 1, got '0'"),  # (_argtypes.add_threads_option)
         (["--plausible-turn-deg", "-1", "0"], "--plausible-turn-deg must be two finite values >= 0"),
         (["--device", "bogus"], "--device bogus: "),  # (tracebacks from load_candide3, as was a CUDA device on a
         (["--device", "meta"], "--device meta: the meta device holds no data"),  # torch without CUDA)
