@@ -1203,3 +1203,21 @@ def test_confidence_auroc_takes_threads_as_evaluate_does(capsys, monkeypatch):
         assert torch.get_num_threads() == 3
     finally:
         torch.set_num_threads(before)
+
+
+def test_evaluate_pools_a_saved_run_it_tracks_again_once(tmp_path, capsys):
+    """``--add-series a.npz`` of a run that this run tracks again (the tracker is deterministic: the same per-frame
+    figures) pooled its frames twice in section (b); now once, with a line saying so."""
+    import json
+
+    evaluate = _load("evaluate")
+    saved, out = tmp_path / "a.npz", tmp_path / "eval.json"
+    argv = ["--scenarios", "pose_sweep", "--frames", "4", "--size", "64x48", "--cache", "none", "--ablations", "none",
+            "--threads", "1", "--json", str(out)]  # fmt: skip
+    evaluate.main([*argv, "--save-series", str(saved)])
+    frames = json.loads(out.read_text())["auroc/POOLED default configuration"]["frames"]
+    capsys.readouterr()
+    evaluate.main([*argv, "--add-series", str(saved)])
+    assert "--add-series: pose_sweep/full: this run's own (the same per-frame figures), pooled once" in (
+        capsys.readouterr().err)
+    assert json.loads(out.read_text())["auroc/POOLED default configuration"]["frames"] == frames == 3
