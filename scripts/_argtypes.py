@@ -27,6 +27,10 @@ EXIT_TERMINATED = 143
 #: The exit status of a script whose stdout's reader has gone (``| head -1``; 128 + SIGPIPE, as ``cat``'s and
 #: ``torchface``'s).
 EXIT_BROKEN_PIPE = 141
+#: The exit status of a script that ran to its end (its outputs written whole) but whose figures missed a target it
+#: judges (evaluate.py's FAIL, train_expression.py's "NOT met"), as ``torchface track``'s 3 for a run that completed
+#: with a video not tracked whole: 0 says "ran, every judged target met", 2 a usage error, 1 a failure.
+EXIT_TARGET_MISSED = 3
 
 
 class _Terminated(KeyboardInterrupt):
@@ -151,6 +155,35 @@ def positive(kind: str = "a number") -> Callable[[str], float]:
         return value
 
     return parse
+
+
+def add_threads_option(parser: argparse.ArgumentParser) -> None:
+    """Add the scripts' ``--threads N`` (torch's CPU threads; default: torch's, None): an integer >= 1
+    (:func:`integer`), which the script sets with :func:`set_threads` before its work."""
+    parser.add_argument("--threads", type=integer(1), default=None, help="torch CPU threads (default: torch's)")
+
+
+def set_threads(threads: int | None) -> None:
+    """Set torch's CPU threads to ``threads`` (:func:`add_threads_option`'s value); None leaves torch's."""
+    if threads is not None:
+        import torch
+
+        torch.set_num_threads(threads)
+
+
+def checkout_out(*parts: str) -> str:
+    """The default path ``out/<parts>`` of a script's cache: under the checkout the scripts are in (the folder above
+    this one, where it holds the package's ``pyproject.toml``), whatever the working folder (relative to the working
+    folder, a run from elsewhere rendered every sequence again into a new ``out/``); relative to the working folder
+    where the scripts are not in a checkout. An explicit ``--cache`` is taken as given.
+
+    Example:
+        >>> Path(checkout_out("sequences")).parts[-2:]
+        ('out', 'sequences')
+    """
+    root = Path(__file__).resolve().parent.parent
+    base = root if (root / "pyproject.toml").is_file() and (root / "torchface").is_dir() else Path()
+    return str(base.joinpath("out", *parts))
 
 
 def comma_items(text: str) -> list[str]:

@@ -35,6 +35,7 @@ from __future__ import annotations
 import argparse
 import inspect
 import json
+import math
 import os
 import platform
 import resource
@@ -46,7 +47,8 @@ from pathlib import Path
 
 # _argtypes first (run as a command, it makes a Ctrl-C during the heavy imports below one line, status 130)
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the peers module beside this script, however it is run
-from _argtypes import file_problem, folder_problem, output_file, remove_dead_partials, written_whole  # noqa: E402
+from _argtypes import checkout_out, file_problem, folder_problem, output_file, remove_dead_partials  # noqa: E402
+from _argtypes import written_whole  # noqa: E402
 from _argtypes import run_command  # noqa: E402
 
 import torch
@@ -94,6 +96,31 @@ def pose_sweep_frames(cache: Path, width: int, height: int, count: int) -> tuple
     with written_whole(path) as tmp:  # (an interrupted save left a truncated cache file: torch.load's traceback next)
         torch.save(d, tmp)
     return d["frames"], d["landmarks"], d["intrinsics"]
+
+
+def frame_size_problem(width: int, height: int, count: int) -> str | None:
+    """Why the tracker cannot track ``pose_sweep``'s first ``count`` frames at ``width`` x ``height`` (None: it can):
+    its face, seen frontally at the sweep's farthest depth, is narrower there than
+    :attr:`~torchface.tracker.step.TrackerConfig.min_face_width_px` (:func:`~torchface.tracker.step.face_width_px`;
+    the focal length is the larger side, ``Intrinsics.default``), so the streams' fits are too small and hold no
+    template points (64x64: 17.4 px, every step FAILED with 0 points, timed all the same). The message names the
+    least larger side that takes it (74: the pyramid's own least side, ``min_frame_side``, is far below)."""
+    from torchface.geometry.camera import Intrinsics
+    from torchface.model.candide import load_candide3
+    from torchface.synth.scenarios import make_scenario
+    from torchface.tracker.step import TrackerConfig, face_width_px
+
+    least = TrackerConfig().min_face_width_px
+    depths = make_scenario("pose_sweep", 150, width, height).translation[:count]
+    per_focal = float(face_width_px(load_candide3(), depths, Intrinsics.default(1, 1)).min())  # (px at focal 1)
+    face = per_focal * max(width, height)
+    if face >= least:
+        return None
+    side = math.ceil(least / per_focal)
+    side += side % 2
+    return (f"{width}x{height} is too small to track: the sweep's face is {face:.1f} px wide there, narrower than "
+            f"TrackerConfig.min_face_width_px ({least:g} px), and holds no template points; the larger side must be "
+            f">= {side} (e.g. {side}x{side})")
 
 
 def _streams(args: argparse.Namespace) -> tuple[object, torch.Tensor, torch.Tensor, torch.Tensor, object, int]:
@@ -279,6 +306,8 @@ def _check_arguments(ap: argparse.ArgumentParser, args: argparse.Namespace) -> N
         ap.error(f"--frames must be in 4..150 (the sweep's slow first half), got {args.frames}")
     if args.width < 64 or args.height < 64 or args.width % 2 or args.height % 2:
         ap.error(f"--width and --height must be even and >= 64, got {args.width}x{args.height}")
+    if (problem := frame_size_problem(args.width, args.height, args.frames)) is not None:
+        ap.error(f"--width and --height: {problem}")
     try:
         own = [] if args.management_only else batch_list(args.batches) + batch_list(args.malloc_batches)
     except ValueError:
@@ -434,7 +463,9 @@ def main() -> None:
     ap.add_argument("--batches", default="1,8,32,128", help="streams per batch, comma list (default 1,8,32,128)")
     ap.add_argument("--malloc-batches", default="128",
                     help="batches run again with glibc's MALLOC_MMAP_THRESHOLD_=256 MB (comma list; '' for none)")
-    ap.add_argument("--cache", default="out/bench", help="sequence cache folder (default out/bench)")
+    ap.add_argument("--cache", default=checkout_out("bench"),
+                    help="frame cache folder (default: out/bench of this checkout, %(default)s, from any working "
+                    "folder)")
     ap.add_argument("--json", type=output_file, default=None, help="write the figures as JSON here")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--batch", type=int, default=1, help=argparse.SUPPRESS)

@@ -32,7 +32,7 @@ from pathlib import Path
 
 # _argtypes first (run as a command, it makes a Ctrl-C during the heavy imports below one line, status 130)
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # benchmark.py and _argtypes beside this script
-from _argtypes import device_problem, file_problem, folder_problem, output_file  # noqa: E402
+from _argtypes import checkout_out, device_problem, file_problem, folder_problem, output_file  # noqa: E402
 from _argtypes import integer as _integer  # noqa: E402
 from _argtypes import run_command  # noqa: E402
 
@@ -40,7 +40,7 @@ import torch
 
 from torchface.io.sidecar import write_json
 
-from benchmark import batch_list, pose_sweep_frames  # noqa: E402
+from benchmark import batch_list, frame_size_problem, pose_sweep_frames  # noqa: E402
 
 WARM_STEPS = 3
 
@@ -117,7 +117,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--frames", type=_integer(4), default=150, help="frames of the sweep used, at most 150")
     ap.add_argument("--width", type=_integer(64, even=True), default=640, help="frame width (default 640)")
     ap.add_argument("--height", type=_integer(64, even=True), default=480, help="frame height (default 480)")
-    ap.add_argument("--cache", default="out/bench", help="sequence cache folder (default out/bench)")
+    ap.add_argument("--cache", default=checkout_out("bench"),
+                    help="frame cache folder, benchmark.py's (default: out/bench of this checkout, %(default)s, from "
+                    "any working folder)")
     ap.add_argument("--json", type=output_file, default=None, help="write the figures as JSON here")
     args = ap.parse_args(argv)
     try:
@@ -131,6 +133,8 @@ def main(argv: list[str] | None = None) -> int:
         ap.error("--batches and --cpu-batches are both empty: no row to run")
     if args.frames > 150:
         ap.error(f"--frames must be in 4..150 (the sweep's slow first half), got {args.frames}")
+    if (problem := frame_size_problem(args.width, args.height, args.frames)) is not None:
+        ap.error(f"--width and --height: {problem}")
     if (problem := device_problem(args.device)) is not None:
         ap.error(f"--device {args.device}: {problem}")
     if (problem := folder_problem(Path(args.cache))) is not None:

@@ -42,7 +42,8 @@ from pathlib import Path
 
 # _argtypes first (run as a command, it makes a Ctrl-C during the heavy imports below one line, status 130)
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _argtypes import comma_items, file_problem, folder_problem, frame_size, integer, output_file  # noqa: E402
+from _argtypes import add_threads_option, checkout_out, comma_items, file_problem, folder_problem  # noqa: E402
+from _argtypes import frame_size, integer, output_file, set_threads  # noqa: E402
 from _argtypes import written_whole  # noqa: E402
 from _argtypes import run_command  # noqa: E402
 
@@ -160,8 +161,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--variants", default="standard,no_illum,inject", help=f"comma list from {', '.join(VARIANTS)} (default all three)")
     parser.add_argument("--frames", type=int, help="frames per scenario (default: full length)")
     parser.add_argument("--size", type=frame_size, default=None, help="WxH (default 640x480)")
-    parser.add_argument("--cache", default="out/sequences",
-                        help="sequence cache folder (default out/sequences; 'none': in memory)")
+    parser.add_argument("--cache", default=checkout_out("sequences"),
+                        help="sequence cache folder, evaluate.py's (default: out/sequences of this checkout, "
+                        "%(default)s, from any working folder; 'none': in memory)")
     parser.add_argument("--good", type=float, default=2.0, help="positives: error below this (deg)")
     parser.add_argument("--bad", type=float, default=5.0, help="negatives: error above this (deg)")
     parser.add_argument("--seed", type=int, default=0,
@@ -169,6 +171,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--save", type=output_file, help="write the per-frame series here (.npz)")
     parser.add_argument("--progress-every", type=integer(0), default=20,
                         help="a progress line on stderr every N frames of a scenario's run (0: none; default 20)")
+    add_threads_option(parser)
     args = parser.parse_args(argv)
     # (each once, empty items skipped, as evaluate.py reads its lists: a scenario given twice was tracked twice, a
     # variant given twice had its tables printed twice, and a trailing comma was an "unknown scenario ''")
@@ -201,6 +204,7 @@ def main(argv: list[str] | None = None) -> int:
         save = save if save.suffix == ".npz" else save.with_name(save.name + ".npz")
         if (problem := file_problem(save)) is not None:
             parser.error(f"--save {args.save}: {problem}")
+    set_threads(args.threads)
     model = load_candide3()
     base = TrackerConfig(template=TemplateConfig())
     results: dict[str, dict[str, dict[str, np.ndarray]]] = {v: {} for v in variants}

@@ -77,6 +77,9 @@ from pathlib import Path
 # _argtypes first (run as a command, it makes a Ctrl-C during the heavy imports below one line, status 130)
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the peers module beside this script, however it is run
 from _argtypes import (  # noqa: E402
+    EXIT_TARGET_MISSED,
+    add_threads_option,
+    checkout_out,
     comma_items,
     device_problem,
     file_problem,
@@ -85,6 +88,7 @@ from _argtypes import (  # noqa: E402
     integer,
     output_file,
     run_command,
+    set_threads,
     smoothing_settings,
     written_whole,
 )
@@ -581,6 +585,34 @@ def _mark(ok: bool) -> str:
     return "PASS" if ok else "FAIL"
 
 
+def long_targets_met(return_errors_deg: list[float], worst_out_of_view: int | None) -> tuple[bool, bool]:
+    """Section (a)'s two targets, of the :data:`LONG_DEFAULT` run: the error at every return to frontal <=
+    :data:`RETURN_TARGET_DEG` (a run too short for any return: not met, the table's "FAIL (max -)"), and every loss
+    out of view recovered within :data:`RECOVERY_TARGET_FRAMES` frames (``worst_out_of_view``:
+    ``LongRunMetrics.worst_recovery("out of view")``, None where one never recovered). The table's marks and the exit
+    status read them alike."""
+    worst_return = max(return_errors_deg, default=float("nan"))
+    recovered = worst_out_of_view is not None and worst_out_of_view <= RECOVERY_TARGET_FRAMES
+    return worst_return <= RETURN_TARGET_DEG, recovered
+
+
+def missed_targets(figures: dict[str, dict[str, object]]) -> list[str]:
+    """The targets that ``figures`` (``{label: figures}`` as --json holds them: the long runs' :func:`long_json`,
+    section (b)'s ``auroc/...``) miss, as the tables' FAIL marks show them: section (a)'s two of each
+    :data:`LONG_DEFAULT` run (:func:`long_targets_met`) and section (b)'s AUROC (an AUROC of n/a misses nothing). The
+    "also" lines of section (a) are no targets. Empty: none missed (exit status 0)."""
+    missed = []
+    for label, m in figures.items():
+        if label.partition("/")[0] in LONG_SCENARIOS and label.endswith(f"/{LONG_DEFAULT}"):
+            returns, recovered = long_targets_met(list(m["return_errors_deg"]), m["worst_recovery_out_of_view"])
+            missed += [f"{label}: error at a return > {RETURN_TARGET_DEG:g} deg"] * (not returns)
+            missed += [f"{label}: a loss not recovered within {RECOVERY_TARGET_FRAMES} frames"] * (not recovered)
+    a = figures.get("auroc/POOLED default configuration", {}).get("auroc", math.nan)
+    if a is not None and not math.isnan(a) and a < AUROC_TARGET:
+        missed.append(f"section (b): AUROC {a:.3f} < {AUROC_TARGET:g}")
+    return missed
+
+
 def long_table(name: str, info: str, gt: GroundTruth, runs: dict[str, tuple[LongRunMetrics, float]], hold: int) -> str:
     """Section (a)'s table of one long scenario: the configurations side by side."""
     configs = list(runs)
@@ -639,14 +671,14 @@ def long_table(name: str, info: str, gt: GroundTruth, runs: dict[str, tuple[Long
             return "never" if frames is None else str(frames)
 
         out_of_view, occluded = m.worst_recovery("out of view"), m.worst_recovery("occluded")
+        returns, recovered = long_targets_met(m.return_errors_deg, out_of_view)
         lines.append(
             f"   target ({LONG_DEFAULT}): error at every return <= {RETURN_TARGET_DEG:g} deg: "
-            f"{_mark(worst_return <= RETURN_TARGET_DEG)} (max {_fmt(worst_return)})"
+            f"{_mark(returns)} (max {_fmt(worst_return)})"
         )
         lines.append(
             f"   target ({LONG_DEFAULT}): every loss recovered within {RECOVERY_TARGET_FRAMES} frames of the face being"
-            f" in view again: {_mark(out_of_view is not None and out_of_view <= RECOVERY_TARGET_FRAMES)} (worst"
-            f" {text(out_of_view)})"
+            f" in view again: {_mark(recovered)} (worst {text(out_of_view)})"
         )
         lines.append(
             f"   also ({LONG_DEFAULT}): after an occluder within {RECOVERY_TARGET_FRAMES} frames: "
@@ -781,6 +813,14 @@ def load_series(path: Path) -> list[FrameSeries]:
     return out
 
 
+def _same_run(s: FrameSeries) -> tuple[object, ...]:
+    """What makes two saved series one run: scenario, configuration, frame size and every per-frame figure (not the
+    time per frame, which differs between two runs of one tracking: the tracker is deterministic). Two equal ones
+    would be one run's frames counted twice in section (b) (and one table in section (a))."""
+    figures = (getattr(s, f).numpy().tobytes() for f in _SERIES_FIELDS)
+    return (s.scenario, s.config, s.default, s.width, s.height, *figures)
+
+
 def _series_array(z: np.lib.npyio.NpzFile, key: str, kind: str, length: int | None) -> np.ndarray:
     """``z[key]``, checked to be of shape ``(length,)`` (any length where None) and numpy dtype kind ``kind`` (``U``
     text, ``f`` float, ``b`` bool), as :func:`save_series` writes it.
@@ -903,8 +943,17 @@ def _names(text: str, parser: argparse.ArgumentParser) -> list[str]:
     return list(dict.fromkeys(names))
 
 
+#: --help's epilog: the exit statuses.
+EXIT_STATUSES = (
+    f"Exit status: 0 when the run completed and met every target it judges; {EXIT_TARGET_MISSED} when it completed "
+    "(tables and files written) but a target reads FAIL: section (a)'s two (returns, recoveries) or section (b)'s "
+    "AUROC (the 'also' lines and an AUROC of n/a are no targets; the README's standard-scenario targets are not judged "
+    "here); 2 a usage error; 1 a failure; 130 / 143 interrupted / terminated."
+)
+
+
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=(__doc__ or "").partition("\n")[0])
+    parser = argparse.ArgumentParser(description=(__doc__ or "").partition("\n")[0], epilog=EXIT_STATUSES)
     parser.add_argument(
         "--scenarios", "--only", default=None,
         help=f"comma list from {', '.join(ALL_SCENARIOS)}, or all (default), standard, long; none (with --add-series)",
@@ -914,9 +963,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--long-frames", type=int, help="frames per long scenario (default: 3000)")
     parser.add_argument("--size", type=frame_size, default=None,
                         help="WxH (default 640x480); even sides where a video is written (--cache, long scenarios)")
-    parser.add_argument("--cache", default="out/sequences",
-                        help="sequence cache folder (default out/sequences); 'none' renders in memory, the long "
-                        "scenarios into a temporary folder (they are streamed from a video: ~0.5 GB each at 640x480)")
+    parser.add_argument("--cache", default=checkout_out("sequences"),
+                        help="sequence cache folder (default: out/sequences of this checkout, %(default)s, from any "
+                        "working folder); 'none' renders in memory, the long scenarios into a temporary folder (they "
+                        "are streamed from a video: ~0.5 GB each at 640x480)")
     parser.add_argument(
         "--ablations", default="all", help=f"all, none (full only) or a comma list from {', '.join(ABLATIONS)}"
     )
@@ -934,14 +984,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--add-series", default="",
         help="comma list of --save-series files of earlier runs: their long runs' tables are printed again (ground"
-        " truth from the cache) and all of them are pooled into section (b)",
+        " truth from the cache) and all of them are pooled into section (b); a run held twice (a copy of a file "
+        "under another name) is refused, one this run tracked again is pooled once",
     )
     parser.add_argument("--hold", type=int, default=5, help="good frames in a row that make a recovery (default 5)")
     parser.add_argument("--json", type=output_file,
                         help="write {scenario[/ablation or config]: {metric: value}} here when the run completes (the "
-                        "figures so far are in JSON.partial while it runs, and after a failed or interrupted run)")
+                        "figures so far are in JSON.partial while it runs, and after a failed or interrupted run; its "
+                        "first figures move an earlier run's JSON to JSON.previous, removed when this run completes)")
     parser.add_argument("--device", default="cpu", help="torch device of the tracker (default cpu)")
-    parser.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
+    add_threads_option(parser)
     parser.add_argument("--seed", type=int, default=0, help="seed of the landmark noise (default 0)")
     parser.add_argument(
         "--lookahead", action="store_true",
@@ -1094,8 +1146,6 @@ def main(argv: list[str] | None = None) -> int:
                           ("--selection-seeds", selection_seeds)):  # fmt: skip
         if wrong := [x for x in seeds if not 0 <= x <= MAX_SEED]:
             parser.error(f"{option} must be integers in [0, 2**63 - 1], got {wrong[0]}")
-    if args.threads is not None and args.threads < 1:
-        parser.error(f"--threads must be >= 1, got {args.threads}")
     try:
         smoothing = smoothing_settings(args.smoothing)
     except ValueError as exc:
@@ -1114,8 +1164,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.cache.lower() != "none" and (problem := folder_problem(Path(args.cache))) is not None:
         parser.error(f"--cache {args.cache}: {problem}")
     check_size_for_video(parser, args.size, args.cache, names)
-    if args.threads is not None:
-        torch.set_num_threads(args.threads)
+    set_threads(args.threads)
     global LOOKAHEAD, ONLINE_REFINE, TRUTH_FIT
     if args.truth_fit and args.lookahead:
         parser.error("--truth-fit and --lookahead both choose the first fit; give one")
@@ -1136,6 +1185,7 @@ def main(argv: list[str] | None = None) -> int:
 
     earlier: list[FrameSeries] = []
     added: list[Path] = []
+    holds: dict[tuple[object, ...], Path] = {}  # (a run's figures: the file that holds them)
     for item in (x.strip() for x in args.add_series.split(",")):
         if item:
             if not Path(item).is_file():
@@ -1151,9 +1201,16 @@ def main(argv: list[str] | None = None) -> int:
                                  "holds; write it under another name")  # fmt: skip
             added.append(Path(item))
             try:
-                earlier += load_series(Path(item))
+                runs = load_series(Path(item))
             except ValueError as exc:
                 parser.error(f"--add-series: {exc}")
+            # (one run in two files, a copy under another name: section (a) showed it once, (b) pooled it twice)
+            for run in runs:
+                if (first := holds.get(key := _same_run(run))) is not None:
+                    parser.error(f"--add-series: {item} holds the run {run.scenario}/{run.config} that {first} holds "
+                                 "too (the same per-frame figures): section (b) would pool it twice; give it once")
+                holds[key] = Path(item)
+                earlier.append(run)
 
     model = load_candide3(device=args.device)
     base = TrackerConfig()
@@ -1176,11 +1233,40 @@ def main(argv: list[str] | None = None) -> int:
     series: list[FrameSeries] = []
     tables: list[str] = []
 
+    partial_json = previous_json = Path()
+    if args.json is not None:
+        partial_json = args.json.with_name(args.json.name + ".partial")
+        previous_json = args.json.with_name(args.json.name + ".previous")
+    wrote: list[bool] = []
+
     def save_progress() -> None:
         """The figures so far to ``<--json>.partial`` (the last write, of every figure, renames that file to the
-        --json path: a failed or interrupted run leaves no file there that looks like a whole run's figures)."""
-        if args.json is not None:
-            write_json(args.json.with_name(args.json.name + ".partial"), results)
+        --json path: a failed or interrupted run leaves no file there that looks like a whole run's figures). The
+        first write moves an earlier run's --json file to ``<--json>.previous`` (one rename: the whole figures of the
+        last run that completed, until this one completes), so that an interrupted rerun does not leave it under the
+        --json name beside this run's ``.partial``, where it read as this run's result."""
+        if args.json is None:
+            return
+        if not wrote:
+            wrote.append(True)
+            if args.json.is_file():
+                os.replace(args.json, previous_json)
+        write_json(partial_json, results)
+
+    def say_where_the_figures_are(kind: type[BaseException] | None, exc: object, tb: object) -> bool:
+        """On a run stopped by an interrupt or an error (not a broken pipe: no word there), a line on stderr naming
+        this run's figures so far and an earlier run's. Returns False: the exception goes on."""
+        if kind is None or args.json is None or issubclass(kind, BrokenPipeError):
+            return False
+        earlier_whole = previous_json if wrote else args.json
+        if wrote:
+            text = f"this run's figures so far are in {partial_json}"
+        else:
+            text = "this run wrote no figures yet" + (f"; {partial_json} is an earlier run's" * partial_json.is_file())
+        if earlier_whole.is_file():
+            text += f"; {earlier_whole} holds the figures of an earlier run that completed"
+        log(f"evaluate.py: {text}")
+        return False
 
     def rerun_full(
         seq: Sequence, size: tuple[int, int, int], rows: dict[str, dict[str, float]],
@@ -1204,6 +1290,7 @@ def main(argv: list[str] | None = None) -> int:
         return by
 
     with contextlib.ExitStack() as stack:
+        stack.push(say_where_the_figures_are)
         for name in names:
             w, h, t = scenario_size(name, "full")
             if args.size is not None:
@@ -1286,22 +1373,35 @@ def main(argv: list[str] | None = None) -> int:
                 by_draw = rerun_full(seq, (w, h, t), rows, variants)
                 tables.append(seed_table(name, by_draw, info, "template selection seeds"))
                 print(tables[-1] + "\n", flush=True)
-    if earlier:
-        again, figures = long_tables_from_series(earlier, cache, args.hold)
-        for text in again:
+        if earlier and series:  # (the same run saved earlier: one table, pooled once)
+            mine = {_same_run(x) for x in series}
+            if again := [x for x in earlier if _same_run(x) in mine]:
+                log(f"--add-series: {', '.join(f'{x.scenario}/{x.config}' for x in again)}: this run's own (the same "
+                    "per-frame figures), pooled once")  # fmt: skip
+                earlier = [x for x in earlier if _same_run(x) not in mine]
+        missed: list[str] = []
+        if earlier:
+            again_tables, figures = long_tables_from_series(earlier, cache, args.hold)
+            for text in again_tables:
+                print(text + "\n", flush=True)
+            missed += missed_targets(figures)
+            results.update({k: v for k, v in figures.items() if k not in results})
+        if args.save_series is not None:
+            save_series(args.save_series, series)
+        if not args.no_auroc and series + earlier:
+            text, figures = auroc_section(earlier + series)
             print(text + "\n", flush=True)
-        results.update({k: v for k, v in figures.items() if k not in results})
-    if args.save_series is not None:
-        save_series(args.save_series, series)
-    if not args.no_auroc and series + earlier:
-        text, figures = auroc_section(earlier + series)
-        print(text + "\n", flush=True)
-        results.update({f"auroc/{k}": v for k, v in figures.items()})
-    if args.json is not None:  # (the last scenario's --smoothing rows come after its last write above)
-        save_progress()
-        # (renamed here: write_json(args.json) wrote through a temporary <json>.partial, the progress file itself,
-        # and deleted it where the rename failed: a failed end lost the figures so far)
-        os.replace(args.json.with_name(args.json.name + ".partial"), args.json)
+            results.update({f"auroc/{k}": v for k, v in figures.items()})
+        if args.json is not None:  # (the last scenario's --smoothing rows come after its last write above)
+            save_progress()
+            # (renamed here: write_json(args.json) wrote through a temporary <json>.partial, the progress file
+            # itself, and deleted it where the rename failed: a failed end lost the figures so far)
+            os.replace(partial_json, args.json)
+            previous_json.unlink(missing_ok=True)  # (this run's figures are the last whole ones now)
+    missed = list(dict.fromkeys(missed_targets(results) + missed))
+    if missed:  # (after the tables, which mark them FAIL: a script tells from the status alone)
+        log(f"evaluate.py: {len(missed)} target(s) missed (exit status {EXIT_TARGET_MISSED}): {'; '.join(missed)}")
+        return EXIT_TARGET_MISSED
     return 0
 
 

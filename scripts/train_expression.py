@@ -34,7 +34,8 @@ Stages (each timed):
 
 The table gives the test accuracies per fold and pooled over the folds, the gain in points, the loader's
 throughput and the stage times. Target (the project's issue 6, item 5): normalised beats crop by >= 10 points,
-judged on full runs (``--quick`` says "not judged"; its JSON's ``target_met`` is null).
+judged on full runs (``--quick`` says "not judged"; its JSON's ``target_met`` is null). A full run that misses it
+exits with status 3 once its figures are written (0: met).
 
 Examples:
     python scripts/train_expression.py --out out/expression --json out/expression.json
@@ -58,7 +59,7 @@ from pathlib import Path
 # _argtypes first (run as a command, it makes a Ctrl-C during the heavy imports below one line, status 130)
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # _argtypes beside this script, however it is run
 from _argtypes import file_problem, folder_problem, output_file, written_whole  # noqa: E402
-from _argtypes import run_command  # noqa: E402
+from _argtypes import EXIT_TARGET_MISSED, run_command  # noqa: E402
 
 import numpy as np
 import torch
@@ -437,7 +438,10 @@ def _clear_own_folder(folder: Path) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=(__doc__ or "").partition("\n")[0],
+    epilog = (f"Exit status: 0 when the run completed and met its target (or, --quick, left it unjudged);\n"
+              f"{EXIT_TARGET_MISSED} when it completed (tables and --json written) but the target is NOT met;\n"
+              "2 a usage error; 1 a failure; 130 / 143 interrupted / terminated.")  # fmt: skip
+    p = argparse.ArgumentParser(description=(__doc__ or "").partition("\n")[0], epilog=epilog,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", type=Path, default=Path("out/expression"), help="working folder (videos, cache)")
     p.add_argument("--seed", type=int, default=0,
@@ -589,6 +593,9 @@ def main(argv: list[str] | None = None) -> int:
         }  # fmt: skip
         with written_whole(args.json) as tmp:
             tmp.write_text(json.dumps(figures, indent=1) + "\n")
+    if target_met is False:  # (after the figures, which say so: a script tells from the status alone)
+        log(f"train_expression.py: target NOT met (exit status {EXIT_TARGET_MISSED})")
+        return EXIT_TARGET_MISSED
     return 0
 
 

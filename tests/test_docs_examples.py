@@ -346,13 +346,15 @@ def test_readme_command_lines_run_on_a_tiny_clip(tmp_path, monkeypatch, capsys):
 
 
 def _script_options(script: str) -> set[str]:
-    """The options quoted in ``script``, with peers.py's MediaPipe options where it adds them (``add_options``)."""
+    """The options quoted in ``script``, with peers.py's MediaPipe options where it adds them (``add_options``) and
+    _argtypes.py's ``--threads`` where it adds that (``add_threads_option``)."""
     source = (ROOT / "scripts" / script).read_text(encoding="utf-8")
     options = set(re.findall(r"""["'](--[a-z][a-z0-9-]*)["']""", source))
-    if re.search(r"from peers import [^\n]*\badd_options\b", source):
-        peers = (ROOT / "scripts" / "peers.py").read_text(encoding="utf-8")
-        body = peers.split("def add_options(", 1)[1].split("\ndef ", 1)[0]
-        options |= set(re.findall(r"""["'](--[a-z][a-z0-9-]*)["']""", body))
+    for module, function in (("peers", "add_options"), ("_argtypes", "add_threads_option")):
+        if re.search(rf"from {module} import (\([^)]*|[^\n]*)\b{function}\b", source):  # (one line or in brackets)
+            text = (ROOT / "scripts" / f"{module}.py").read_text(encoding="utf-8")
+            body = text.split(f"def {function}(", 1)[1].split("\ndef ", 1)[0]
+            options |= set(re.findall(r"""["'](--[a-z][a-z0-9-]*)["']""", body))
     return options
 
 

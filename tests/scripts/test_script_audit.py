@@ -275,7 +275,7 @@ def test_benchmark_device_makes_the_json_folder(tmp_path, capsys):
 
     out = tmp_path / "new" / "sub" / "figures.json"
     argv = ["--device", "cpu", "--batches", "1", "--cpu-batches", "", "--steps", "1", "--frames", "6", "--width",
-            "64", "--height", "64", "--threads", "1", "--cache", str(tmp_path / "cache"), "--json", str(out)]  # fmt: skip
+            "74", "--height", "64", "--threads", "1", "--cache", str(tmp_path / "cache"), "--json", str(out)]  # fmt: skip
     assert _load("benchmark_device").main(argv) == 0
     assert list(json.loads(out.read_text())) == ["device_batch_1"]
 
@@ -859,7 +859,7 @@ def test_evaluate_refuses_no_long_configuration_and_runs_one_given_twice_once(ca
     monkeypatch.setattr(evaluate, "track_frames", track)
     argv = ["--only", "long_run", "--long-configs", "mosaic,mosaic", "--long-frames", "100", "--size", "64x48",
             "--cache", "none", "--threads", "1"]  # fmt: skip
-    assert evaluate.main(argv) == 0
+    assert evaluate.main(argv) == 3  # (100 frames end out of view: its table's recovery target FAIL, exit status 3)
     assert tracked == ["long_run/mosaic"], tracked
     capsys.readouterr()
 
@@ -1015,3 +1015,209 @@ def test_evaluate_refuses_seeds_past_torchs_range_before_any_work(capsys, monkey
                           ("--seed", "-1")):  # fmt: skip
         argv = ["--only", "pose_sweep", option, value, "--cache", "none"]
         assert f"{option} must be integers in [0, 2**63 - 1], got " in _usage_error(evaluate.main, argv, capsys)
+
+
+def _pose_series(evaluate, confidence_rises_with_error: bool, shift: float = 0.0) -> list:
+    """One saved run of pose_sweep's full configuration: errors 0..9 deg (frame 0 and 3 in between left out of
+    section (b)), its confidence falling with the error (an AUROC of 1) or rising (0)."""
+    import torch
+
+    error = torch.arange(10, dtype=torch.float64) + shift
+    confidence = error / 10 if confidence_rises_with_error else 1 - error / 10
+    ones = torch.ones(10, dtype=torch.bool)
+    return [evaluate.FrameSeries("pose_sweep", "full", True, error, confidence, ones, ones, 1.0, 64, 48)]
+
+
+def test_evaluate_exits_with_3_when_a_target_is_missed(tmp_path, capsys):
+    """A run whose tables read FAIL exited 0 as one that met every target: a scripted evaluation could not tell
+    without parsing the tables. Now it exits with 3 (_argtypes.EXIT_TARGET_MISSED) once its outputs are written, with
+    a line naming the missed targets; 0 where every judged target is met."""
+    import json
+
+    evaluate = _load("evaluate")
+    good, bad = tmp_path / "good.npz", tmp_path / "bad.npz"
+    evaluate.save_series(good, _pose_series(evaluate, confidence_rises_with_error=False))
+    evaluate.save_series(bad, _pose_series(evaluate, confidence_rises_with_error=True))
+    assert evaluate.main(["--scenarios", "none", "--add-series", str(good)]) == 0
+    assert "target: AUROC >= 0.9 (pooled, default configuration): PASS" in capsys.readouterr().out
+    out = tmp_path / "eval.json"
+    assert evaluate.main(["--scenarios", "none", "--add-series", str(bad), "--json", str(out)]) == 3
+    captured = capsys.readouterr()
+    assert "target: AUROC >= 0.9 (pooled, default configuration): FAIL" in captured.out
+    assert "1 target(s) missed (exit status 3): section (b): AUROC 0.000 < 0.9" in captured.err
+    assert json.loads(out.read_text())["auroc/POOLED default configuration"]["auroc"] == 0.0  # (written whole)
+    assert "Exit status: 0 when the run completed" in evaluate.EXIT_STATUSES
+    # Section (a)'s two targets, of the default configuration only, as its table marks them
+    figures = {"long_run/mosaic": {"return_errors_deg": [0.4, 1.2], "worst_recovery_out_of_view": 5},
+               "long_run_scan/mosaic": {"return_errors_deg": [0.4], "worst_recovery_out_of_view": None},
+               "long_run/bare": {"return_errors_deg": [9.0], "worst_recovery_out_of_view": None}}  # fmt: skip
+    assert evaluate.missed_targets(figures) == [
+        "long_run/mosaic: error at a return > 1 deg", "long_run_scan/mosaic: a loss not recovered within 30 frames"]
+    assert evaluate.missed_targets({"long_run/mosaic": {"return_errors_deg": [1.0], "worst_recovery_out_of_view": 30},
+                                    "auroc/POOLED default configuration": {"auroc": float("nan")}}) == []
+
+
+def test_train_expression_exits_with_3_when_its_target_is_not_met(tmp_path, capsys, monkeypatch):
+    """A full run that printed "target ... NOT met" exited 0; now 3, once its figures are written."""
+    import json
+
+    script = _load("train_expression")
+    monkeypatch.setattr(script, "RunConfig", lambda: script.QUICK)  # (a full run's judging on the quick settings)
+    monkeypatch.setattr(script, "train_and_test", lambda *a, **k: 0.5)  # (no training: every input scores alike)
+    out = tmp_path / "figures.json"
+    assert script.main(["--out", str(tmp_path / "run"), "--json", str(out)]) == 3
+    assert "train_expression.py: target NOT met (exit status 3)" in capsys.readouterr().out  # (its log: stdout)
+    assert json.loads(out.read_text())["target_met"] is False
+
+
+def test_evaluate_moves_an_earlier_runs_json_aside_once_it_writes(tmp_path, capsys, monkeypatch):
+    """An interrupted rerun left the earlier run's --json file beside this run's ``.partial``, where it read as this
+    run's result. Now this run's first figures move it to ``<json>.previous`` (one rename), the interruption's line
+    names both files, and a run that completes removes the ``.previous``."""
+    import json
+
+    evaluate = _load("evaluate")
+    out = tmp_path / "eval.json"
+    partial, previous = tmp_path / "eval.json.partial", tmp_path / "eval.json.previous"
+    out.write_text('{"an earlier run": {}}\n')
+    argv = ["--scenarios", "expressions,pose_sweep", "--frames", "3", "--size", "64x48", "--cache", "none",
+            "--ablations", "none", "--no-auroc", "--threads", "1", "--json", str(out)]  # fmt: skip
+    load = evaluate.load_sequence
+
+    def interrupted(*a, **k):
+        if a[0] == "pose_sweep":
+            raise KeyboardInterrupt
+        return load(*a, **k)
+
+    monkeypatch.setattr(evaluate, "load_sequence", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        evaluate.main(argv)
+    assert not out.exists() and json.loads(previous.read_text()) == {"an earlier run": {}}
+    assert list(json.loads(partial.read_text())) == ["expressions"]
+    assert (f"evaluate.py: this run's figures so far are in {partial}; {previous} holds the figures of an earlier run "
+            "that completed") in capsys.readouterr().err  # fmt: skip
+    monkeypatch.setattr(evaluate, "load_sequence", lambda *a, **k: (_ for _ in ()).throw(KeyboardInterrupt))
+    with pytest.raises(KeyboardInterrupt):  # (interrupted before its first figures: nothing moved, both named)
+        evaluate.main(argv)
+    assert f"this run wrote no figures yet; {partial} is an earlier run's" in capsys.readouterr().err
+    assert previous.is_file() and partial.is_file()
+    monkeypatch.setattr(evaluate, "load_sequence", load)
+    assert evaluate.main(argv) == 0
+    assert {"expressions", "pose_sweep"} <= set(json.loads(out.read_text()))
+    assert not partial.exists() and not previous.exists()
+
+
+def test_evaluate_refuses_one_run_in_two_series_files(tmp_path, capsys):
+    """Two --add-series files holding one run (a copy under another name) showed it once in section (a)'s tables
+    and pooled it twice in section (b); now a one-line error, as one file given twice is. Two runs that differ are
+    pooled both."""
+    import json
+    import shutil
+
+    evaluate = _load("evaluate")
+    a, b, c = tmp_path / "a.npz", tmp_path / "b.npz", tmp_path / "c.npz"
+    evaluate.save_series(a, _pose_series(evaluate, False))
+    shutil.copy(a, b)
+    evaluate.save_series(c, _pose_series(evaluate, False, shift=0.5))  # (another run: other errors)
+    err = _usage_error(evaluate.main, ["--scenarios", "none", "--add-series", f"{a},{b}"], capsys)
+    assert f"--add-series: {b} holds the run pose_sweep/full that {a} holds too" in err, err
+    out = tmp_path / "eval.json"
+    assert evaluate.main(["--scenarios", "none", "--add-series", f"{a},{c}", "--json", str(out)]) == 0
+    assert json.loads(out.read_text())["auroc/POOLED default configuration"]["frames"] == 2 * 9
+
+
+def test_script_caches_default_to_the_checkouts_out_folder(tmp_path, monkeypatch):
+    """The scripts' default caches were ``out/...`` of the working folder: a run from another folder rendered every
+    sequence again into a new ``out/``. Now the default is the checkout's ``out/`` (explicit paths as given)."""
+    root = SCRIPTS.parent
+
+    class Stop(Exception):
+        pass
+
+    def stop(seen):
+        def record(*a, **k):
+            seen.append(a)
+            raise Stop
+        return record
+
+    monkeypatch.chdir(tmp_path)
+    for name in ("evaluate", "confidence_auroc"):
+        module = _load(name)
+        seen: list = []
+        monkeypatch.setattr(module if name == "evaluate" else module.ev, "load_sequence", stop(seen))
+        extra = ["--ablations", "none"] if name == "evaluate" else []
+        with pytest.raises(Stop):
+            module.main(["--scenarios", "pose_sweep", "--frames", "3", "--size", "64x48", *extra])
+        assert Path(seen[0][4]) == root / "out" / "sequences", name  # (load_sequence(name, w, h, t, cache))
+    bench = _load("benchmark")
+    seen = []
+    monkeypatch.setattr(bench, "pose_sweep_frames", stop(seen))
+    monkeypatch.setattr(sys, "argv", ["benchmark.py", "--batches", "1", "--malloc-batches", "", "--frames", "40"])
+    with pytest.raises(Stop):
+        bench.main()
+    device = _load("benchmark_device")
+    monkeypatch.setattr(device, "pose_sweep_frames", stop(seen))
+    with pytest.raises(Stop):
+        device.main(["--device", "cpu", "--batches", "1", "--cpu-batches", ""])
+    assert [Path(a[0]) for a in seen] == [root / "out" / "bench"] * 2
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("name", ["benchmark", "benchmark_device"])
+def test_benchmarks_refuse_frames_too_small_to_track(name, capsys, monkeypatch):
+    """``--width 64 --height 64`` ran: the sweep's face, 17.5 px wide there, is narrower than
+    TrackerConfig.min_face_width_px, so every stream FAILED with no template points, and the rows timed that. Now a
+    one-line error before any work, naming the least size that tracks."""
+    module = _load(name)
+    monkeypatch.setattr(module, "pose_sweep_frames", None)  # any rendering would fail the test: none may start
+    argv = ["--width", "64", "--height", "64", "--frames", "40", "--batches", "1"]
+    if name == "benchmark":
+        monkeypatch.setattr(sys, "argv", ["benchmark.py", *argv])
+        err = _usage_error(lambda _: module.main(), None, capsys)
+    else:
+        err = _usage_error(module.main, [*argv, "--device", "cpu"], capsys)
+    assert "error: --width and --height: 64x64 is too small to track: the sweep's face is 17.4 px wide there" in err
+    assert err.endswith("narrower than TrackerConfig.min_face_width_px (20 px), and holds no template points; the "
+                        "larger side must be >= 74 (e.g. 74x74)"), err
+    assert module.frame_size_problem(74, 64, 150) is None and module.frame_size_problem(64, 74, 150) is None
+    assert "must be >= 74" in module.frame_size_problem(72, 72, 150)
+
+
+def test_confidence_auroc_takes_threads_as_evaluate_does(capsys, monkeypatch):
+    """confidence_auroc.py had no --threads (evaluate.py has one); now the same option (_argtypes.add_threads_option):
+    an integer >= 1, set before the run."""
+    import torch
+
+    auroc = _load("confidence_auroc")
+    argv = ["--scenarios", "pose_sweep", "--frames", "3", "--size", "64x48", "--cache", "none"]
+    assert "--threads: must be an integer >= 1, got '0'" in _usage_error(auroc.main, [*argv, "--threads", "0"], capsys)
+
+    class Stop(Exception):
+        pass
+
+    monkeypatch.setattr(auroc, "load_candide3", lambda: (_ for _ in ()).throw(Stop()))
+    before = torch.get_num_threads()
+    try:
+        with pytest.raises(Stop):
+            auroc.main([*argv, "--threads", "3"])
+        assert torch.get_num_threads() == 3
+    finally:
+        torch.set_num_threads(before)
+
+
+def test_evaluate_pools_a_saved_run_it_tracks_again_once(tmp_path, capsys):
+    """``--add-series a.npz`` of a run that this run tracks again (the tracker is deterministic: the same per-frame
+    figures) pooled its frames twice in section (b); now once, with a line saying so."""
+    import json
+
+    evaluate = _load("evaluate")
+    saved, out = tmp_path / "a.npz", tmp_path / "eval.json"
+    argv = ["--scenarios", "pose_sweep", "--frames", "4", "--size", "64x48", "--cache", "none", "--ablations", "none",
+            "--threads", "1", "--json", str(out)]  # fmt: skip
+    evaluate.main([*argv, "--save-series", str(saved)])
+    frames = json.loads(out.read_text())["auroc/POOLED default configuration"]["frames"]
+    capsys.readouterr()
+    evaluate.main([*argv, "--add-series", str(saved)])
+    assert "--add-series: pose_sweep/full: this run's own (the same per-frame figures), pooled once" in (
+        capsys.readouterr().err)
+    assert json.loads(out.read_text())["auroc/POOLED default configuration"]["frames"] == frames == 3

@@ -82,7 +82,7 @@ def test_script_arguments_that_would_fail_late_are_one_line_errors(tmp_path, cap
         (["--long-frames", "0"], "--long-frames must be >= 100"),
         (["--json", str(tmp_path / "jdir")], "not a file path"),
         (["--mediapipe-python", str(tmp_path / "nope")], "no such executable"),
-        (["--threads", "0"], "--threads must be >= 1"),
+        (["--threads", "0"], "--threads: must be an integer >= 1, got '0'"),  # (_argtypes.add_threads_option)
         (["--plausible-turn-deg", "-1", "0"], "--plausible-turn-deg must be two finite values >= 0"),
         (["--device", "bogus"], "--device bogus: "),  # (tracebacks from load_candide3, as was a CUDA device on a
         (["--device", "meta"], "--device meta: the meta device holds no data"),  # torch without CUDA)
@@ -439,7 +439,8 @@ def test_benchmark_scripts_refuse_bad_options_before_any_work(tmp_path, capsys, 
 
 def test_benchmark_dataloader_judges_its_target_on_full_runs_only(capsys, monkeypatch):
     """A smoke run (2 videos of 6 frames: 12 faces) printed "target ... NOT met (median 22)": the workers' start
-    was most of its epoch. Now not judged under the default run's 192 faces; judged from them on."""
+    was most of its epoch. Now not judged under the default run's 192 faces; judged from them on, a miss exiting with
+    3 (_argtypes.EXIT_TARGET_MISSED: 0 before, as a run that met it)."""
     dataloader = _load("benchmark_dataloader")
     monkeypatch.setattr(dataloader, "render_videos", lambda root, count, frames, w, h: ([root] * count, [None] * count))
 
@@ -450,10 +451,10 @@ def test_benchmark_dataloader_judges_its_target_on_full_runs_only(capsys, monkey
                 "cached_fraction": float(data["passes"] > 1)}  # fmt: skip
 
     monkeypatch.setattr(dataloader, "loader_throughput", throughput)
-    for videos, frames, verdict in ((2, 6, "not judged on 12 faces"), (8, 24, "NOT met (median 50)")):
+    for videos, frames, verdict, status in ((2, 6, "not judged on 12 faces", 0), (8, 24, "NOT met (median 50)", 3)):
         monkeypatch.setattr(dataloader, "VideoDataset", lambda v, lm, c: {"faces": len(v) * frames, "passes": 0})
         argv = ["--videos", str(videos), "--frames", str(frames), "--workers", "2", "--repeats", "1"]
-        assert dataloader.main(argv) == 0
+        assert dataloader.main(argv) == status
         line = [t for t in capsys.readouterr().out.splitlines() if t.startswith("target")]
         assert len(line) == 1 and verdict in line[0], line
 
