@@ -39,6 +39,10 @@ with the default configuration; every recovery within 30 frames.
 Section (b): how well the tracker's confidence (TrackResult.confidence) separates frames with rotation error
 > 5 deg from frames < 2 deg (AUROC), pooled over every scenario run (in-view frames 1 .. T-1). Target >= 0.9.
 
+The standard scenarios' targets (issue 3: STANDARD_TARGETS, the moving units of expressions, an ablation clearly
+worse) are judged in a last table, PASS / FAIL, for a scenario run at its standard size and length ("not judged"
+otherwise). The exit status is 3 when any judged target reads FAIL.
+
 Examples:
     python scripts/evaluate.py --scenarios pose_sweep --frames 40 --size 320x240 --ablations none
     python scripts/evaluate.py --scenarios pose_sweep,expressions --ablations none --json out/eval.json
@@ -164,6 +168,27 @@ RETURN_TARGET_DEG: float = 1.0
 GOOD_DEG: float = 2.0
 BAD_DEG: float = 5.0
 AUROC_TARGET: float = 0.9
+
+#: The standard scenarios' targets (issue 3), judged on a scenario's full configuration at its standard size and length
+#: (``scenario_size(name, "full")``; another size or length is not judged): scenario -> ``(figure, bound)`` pairs, each
+#: met where the figure is at most the bound. ``expressions`` adds every unit its ground truth moves (AU_RMSE_TARGET,
+#: AU_CORR_TARGET); WORSE_ABLATIONS adds an ablation that must be clearly worse.
+STANDARD_TARGETS: dict[str, tuple[tuple[str, float], ...]] = {
+    "pose_sweep": (("rot_err_mean_deg", 0.5), ("rot_err_max_deg", 2.0)),
+    "expressions": (("rot_err_mean_deg", 0.7),),
+    "light_switch": (("rot_err_mean_deg", 1.0), ("lost_frames", 0)),
+    "occlusion": (("rot_err_mean_deg", 1.5), ("lost_frames", 0)),
+    "scan_motion": (("rot_err_mean_deg", 2.0), ("rot_err_max_deg", 5.0)),
+}
+
+#: ``expressions``: every moving unit's RMSE (fraction of its range) at most this, and its correlation at least the next.
+AU_RMSE_TARGET: float = 0.05
+AU_CORR_TARGET: float = 0.95
+
+#: The ablation that must be "clearly worse" than the full configuration, by scenario: its mean rotation error at
+#: least WORSE_FACTOR times the full run's, or more lost frames. Not judged where the ablation was not run.
+WORSE_ABLATIONS: dict[str, str] = {"light_switch": "no_illumination", "occlusion": "no_robust"}
+WORSE_FACTOR: float = 2.0
 
 #: The largest seed the options take (--seed, --noise-seeds, --selection-seeds): torch's generators take seeds below
 #: 2**64, the template points' (TrackerConfig.selection_seed) up to 2**63 - 1.
@@ -598,7 +623,8 @@ def long_targets_met(return_errors_deg: list[float], worst_out_of_view: int | No
 
 def missed_targets(figures: dict[str, dict[str, object]]) -> list[str]:
     """The targets that ``figures`` (``{label: figures}`` as --json holds them: the long runs' :func:`long_json`,
-    section (b)'s ``auroc/...``) miss, as the tables' FAIL marks show them: section (a)'s two of each
+    section (b)'s ``auroc/...``, the standard scenarios') miss, as the tables' FAIL marks show them: the standard
+    scenarios' (:func:`standard_target_rows`; those not judged miss nothing), section (a)'s two of each
     :data:`LONG_DEFAULT` run (:func:`long_targets_met`) and section (b)'s AUROC (an AUROC of n/a misses nothing). The
     "also" lines of section (a) are no targets. Empty: none missed (exit status 0)."""
     missed = []
@@ -607,10 +633,62 @@ def missed_targets(figures: dict[str, dict[str, object]]) -> list[str]:
             returns, recovered = long_targets_met(list(m["return_errors_deg"]), m["worst_recovery_out_of_view"])
             missed += [f"{label}: error at a return > {RETURN_TARGET_DEG:g} deg"] * (not returns)
             missed += [f"{label}: a loss not recovered within {RECOVERY_TARGET_FRAMES} frames"] * (not recovered)
+    missed += [f"{name}: {target} ({value})" for name, target, value, met in standard_target_rows(figures)
+               if met is False]  # fmt: skip
     a = figures.get("auroc/POOLED default configuration", {}).get("auroc", math.nan)
     if a is not None and not math.isnan(a) and a < AUROC_TARGET:
         missed.append(f"section (b): AUROC {a:.3f} < {AUROC_TARGET:g}")
     return missed
+
+
+def standard_target_rows(figures: dict[str, dict[str, object]]) -> list[tuple[str, str, str, bool | None]]:
+    """Rows ``(scenario, target, measured, met)`` of the standard scenarios' targets (:data:`STANDARD_TARGETS`,
+    the units of ``expressions``, :data:`WORSE_ABLATIONS`) over ``figures`` as --json holds them (a scenario's full
+    configuration under its name, an ablation under ``name/ablation``), for the scenarios there. ``met`` is None where
+    a target is not judged: a run of another size or length than the standard one (the targets are the standard
+    scenarios'), an ablation not run. A NaN figure (no frame to score) misses its target."""
+    rows: list[tuple[str, str, str, bool | None]] = []
+    for name, targets in STANDARD_TARGETS.items():
+        m = figures.get(name)
+        if m is None:
+            continue
+        size, standard = (m.get("width"), m.get("height"), m.get("num_frames")), scenario_size(name, "full")
+        if size != standard:
+            rows.append((name, "every target", "{}x{}, {} frames: not the standard {}x{}, {}".format(*size, *standard),
+                         None))  # fmt: skip
+            continue
+        for key, bound in targets:
+            value = float(m[key])  # type: ignore[arg-type]
+            shown = f"{value:.0f}" if key == "lost_frames" else _fmt(value)
+            rows.append((name, f"{key} <= {bound:g}", shown, value <= bound))
+        if name == "expressions":
+            for key in m:
+                if key.startswith("au_rmse/"):
+                    unit = key.partition("/")[2]
+                    rmse, corr = float(m[key]), float(m[f"au_corr/{unit}"])  # type: ignore[arg-type]
+                    rows.append((name, f"{unit}: RMSE <= {AU_RMSE_TARGET:g}", _fmt(rmse, 3), rmse <= AU_RMSE_TARGET))
+                    rows.append((name, f"{unit}: r >= {AU_CORR_TARGET:g}", _fmt(corr), corr >= AU_CORR_TARGET))
+        if name in WORSE_ABLATIONS:
+            ablation = WORSE_ABLATIONS[name]
+            what = f"{ablation} clearly worse (mean x{WORSE_FACTOR:g} or more lost)"
+            a = figures.get(f"{name}/{ablation}")
+            if a is None:
+                rows.append((name, what, "not run", None))
+                continue
+            mean, lost = float(a["rot_err_mean_deg"]), int(a["lost_frames"])  # type: ignore[arg-type]
+            worse = mean >= WORSE_FACTOR * float(m["rot_err_mean_deg"]) or lost > int(m["lost_frames"])  # type: ignore[arg-type]
+            rows.append((name, what, f"{_fmt(mean)} deg, {lost} lost", worse))
+    return rows
+
+
+def standard_targets_table(rows: list[tuple[str, str, str, bool | None]]) -> str:
+    """The printed table of :func:`standard_target_rows`' rows."""
+    lines = ["== standard scenarios' targets (issue 3; full configuration, standard size) =="]
+    widths = [max(len(r[i]) for r in rows) for i in range(3)]
+    for name, target, value, met in rows:
+        mark = "not judged" if met is None else _mark(met)
+        lines.append(f"{name:<{widths[0]}}  {target:<{widths[1]}}  {value:<{widths[2]}}  {mark}")
+    return "\n".join(lines)
 
 
 def long_table(name: str, info: str, gt: GroundTruth, runs: dict[str, tuple[LongRunMetrics, float]], hold: int) -> str:
@@ -946,9 +1024,10 @@ def _names(text: str, parser: argparse.ArgumentParser) -> list[str]:
 #: --help's epilog: the exit statuses.
 EXIT_STATUSES = (
     f"Exit status: 0 when the run completed and met every target it judges; {EXIT_TARGET_MISSED} when it completed "
-    "(tables and files written) but a target reads FAIL: section (a)'s two (returns, recoveries) or section (b)'s "
-    "AUROC (the 'also' lines and an AUROC of n/a are no targets; the README's standard-scenario targets are not judged "
-    "here); 2 a usage error; 1 a failure; 130 / 143 interrupted / terminated."
+    "(tables and files written) but a target reads FAIL: a standard scenario's (its full configuration at the "
+    "standard size and length; the targets table), section (a)'s two (returns, recoveries) or section (b)'s AUROC "
+    "(the 'also' lines, an AUROC of n/a and a target 'not judged' are no misses); 2 a usage error; 1 a failure; "
+    "130 / 143 interrupted / terminated."
 )
 
 
@@ -1392,6 +1471,8 @@ def main(argv: list[str] | None = None) -> int:
             text, figures = auroc_section(earlier + series)
             print(text + "\n", flush=True)
             results.update({f"auroc/{k}": v for k, v in figures.items()})
+        if rows_judged := standard_target_rows(results):
+            print(standard_targets_table(rows_judged) + "\n", flush=True)
         if args.json is not None:  # (the last scenario's --smoothing rows come after its last write above)
             save_progress()
             # (renamed here: write_json(args.json) wrote through a temporary <json>.partial, the progress file

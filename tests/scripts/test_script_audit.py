@@ -1057,6 +1057,57 @@ def test_evaluate_exits_with_3_when_a_target_is_missed(tmp_path, capsys):
                                     "auroc/POOLED default configuration": {"auroc": float("nan")}}) == []
 
 
+def _standard_figures(evaluate, **changes) -> dict:
+    """--json figures of the five standard scenarios' full runs at their standard size (every target met) and the
+    two ablations judged, updated by ``changes`` (``{"scenario": {figure: value}}``)."""
+    figures: dict = {}
+    for name in evaluate.STANDARD_TARGETS:
+        w, h, t = evaluate.scenario_size(name, "full")
+        figures[name] = {"rot_err_mean_deg": 0.3, "rot_err_max_deg": 0.9, "lost_frames": 0, "width": w, "height": h,
+                         "num_frames": t}  # fmt: skip
+    figures["expressions"].update({"au_rmse/AUV11 Jaw drop": 0.01, "au_corr/AUV11 Jaw drop": 0.99})
+    figures["light_switch/no_illumination"] = {"rot_err_mean_deg": 40.0, "lost_frames": 80}
+    figures["occlusion/no_robust"] = {"rot_err_mean_deg": 3.0, "lost_frames": 12}
+    for name, values in changes.items():
+        figures.setdefault(name, {}).update(values)
+    return figures
+
+
+def test_evaluate_judges_the_standard_scenarios_targets():
+    """The standard scenarios' targets (issue 3: the README's table, eyes closed among them) were not judged by
+    evaluate.py: they were read from its tables by hand, and a run that missed one exited 0. Now a last table marks
+    each PASS / FAIL for a scenario run at its standard size and length, and a miss is in missed_targets (exit 3)."""
+    evaluate = _load("evaluate")
+    assert evaluate.missed_targets(_standard_figures(evaluate)) == []
+    rows = evaluate.standard_target_rows(_standard_figures(evaluate))
+    assert len(rows) == 13 and all(met is True for *_, met in rows)
+    assert "PASS" in evaluate.standard_targets_table(rows) and "FAIL" not in evaluate.standard_targets_table(rows)
+    # the eyes-closed unit as measured, a lost frame, a max over its bound, an ablation no worse, a NaN mean
+    missed = evaluate.missed_targets(_standard_figures(
+        evaluate, expressions={"au_rmse/AUV6 Eyes closed": 0.187, "au_corr/AUV6 Eyes closed": 0.80},
+        light_switch={"lost_frames": 1}, scan_motion={"rot_err_max_deg": 5.5},
+        **{"occlusion/no_robust": {"rot_err_mean_deg": 0.5, "lost_frames": 0}},
+        pose_sweep={"rot_err_mean_deg": float("nan")},
+    ))
+    assert missed == [
+        "pose_sweep: rot_err_mean_deg <= 0.5 (-)",
+        "expressions: AUV6 Eyes closed: RMSE <= 0.05 (0.187)",
+        "expressions: AUV6 Eyes closed: r >= 0.95 (0.80)",
+        "light_switch: lost_frames <= 0 (1)",
+        "occlusion: no_robust clearly worse (mean x2 or more lost) (0.50 deg, 0 lost)",
+        "scan_motion: rot_err_max_deg <= 5 (5.50)",
+    ]
+    # another size or length is not judged; an ablation not run is not judged
+    small = _standard_figures(evaluate, pose_sweep={"width": 320, "rot_err_mean_deg": 9.0})
+    del small["occlusion/no_robust"]
+    rows = {(name, target): (value, met) for name, target, value, met in evaluate.standard_target_rows(small)}
+    w, h, t = evaluate.scenario_size("pose_sweep", "full")
+    assert rows[("pose_sweep", "every target")] == (f"320x{h}, {t} frames: not the standard {w}x{h}, {t}", None)
+    assert rows[("occlusion", "no_robust clearly worse (mean x2 or more lost)")] == ("not run", None)
+    assert evaluate.missed_targets(small) == []
+    assert "not judged" in evaluate.standard_targets_table(evaluate.standard_target_rows(small))
+
+
 def test_train_expression_exits_with_3_when_its_target_is_not_met(tmp_path, capsys, monkeypatch):
     """A full run that printed "target ... NOT met" exited 0; now 3, once its figures are written."""
     import json
