@@ -28,6 +28,28 @@ def test_render_demo_writes_a_sequence(tmp_path, capsys):
     assert load_ground_truth(out / "pose_sweep.gt.npz").num_frames == 3
 
 
+def test_render_demo_writes_a_first_frame_landmarks_file_that_track_takes(tmp_path, capsys):
+    """``render-demo``'s clip could not be tracked by ``torchface track`` without writing a landmarks file in Python:
+    its ground truth files are no ``--landmarks`` file (``.gt.json`` and ``.gt.npz`` are refused). It writes
+    ``<name>_first_frame.csv``, the ground truth's frame-0 landmarks exactly, and prints the command that tracks it."""
+    import numpy as np
+
+    from torchface.io import read_landmarks
+
+    synth = tmp_path / "synth"
+    assert main(["render-demo", "--out", str(synth), "--frames", "3", "--width", "160", "--height", "120"]) == 0
+    text = capsys.readouterr().out
+    lm = synth / "pose_sweep_first_frame.csv"
+    command = f"torchface track {synth / 'pose_sweep.avi'} --out results --landmarks {lm}"
+    assert command in text, text
+    truth = load_ground_truth(synth / "pose_sweep.gt.npz").landmarks_px[0].numpy()
+    assert np.array_equal(read_landmarks(lm, 160, 120), truth)
+    argv = command.split()[1:]
+    argv[argv.index("results")] = str(tmp_path / "results")
+    assert main([*argv, "--quiet"]) == 0, capsys.readouterr().err
+    assert (tmp_path / "results" / "pose_sweep.csv").is_file()
+
+
 def test_render_demo_rejects_unknown_scenario(tmp_path, capsys):
     assert main(["render-demo", "--out", str(tmp_path), "--scenario", "nope", "--frames", "2"]) == 2
     assert "unknown scenario" in capsys.readouterr().err

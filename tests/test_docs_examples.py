@@ -342,7 +342,8 @@ def test_readme_command_lines_run_on_a_tiny_clip(tmp_path, monkeypatch, capsys):
                 assert side["input"]["fps"] == float(argv[argv.index("--fps") + 1]) and side["input"]["fps_given"]
         if argv[0] == "render-demo":
             out = Path(argv[argv.index("--out") + 1])
-            assert {p.name for p in out.iterdir()} >= {"pose_sweep.avi", "pose_sweep.gt.npz", "pose_sweep.gt.json"}
+            assert {p.name for p in out.iterdir()} >= {"pose_sweep.avi", "pose_sweep.gt.npz", "pose_sweep.gt.json",
+                                                       "pose_sweep_first_frame.csv"}  # ("first-frame landmarks")
 
 
 def _script_options(script: str) -> set[str]:
