@@ -31,7 +31,8 @@ def test_render_demo_writes_a_sequence(tmp_path, capsys):
 def test_render_demo_writes_a_first_frame_landmarks_file_that_track_takes(tmp_path, capsys):
     """``render-demo``'s clip could not be tracked by ``torchface track`` without writing a landmarks file in Python:
     its ground truth files are no ``--landmarks`` file (``.gt.json`` and ``.gt.npz`` are refused). It writes
-    ``<name>_first_frame.csv``, the ground truth's frame-0 landmarks exactly, and prints the command that tracks it."""
+    ``<name>_first_frame.csv``, the ground truth's frame-0 landmarks exactly, and prints the command that tracks it;
+    the ground truth's files given as ``--landmarks`` are refused naming that file."""
     import numpy as np
 
     from torchface.io import read_landmarks
@@ -44,6 +45,11 @@ def test_render_demo_writes_a_first_frame_landmarks_file_that_track_takes(tmp_pa
     assert command in text, text
     truth = load_ground_truth(synth / "pose_sweep.gt.npz").landmarks_px[0].numpy()
     assert np.array_equal(read_landmarks(lm, 160, 120), truth)
+    for given in ("pose_sweep.gt.json", "pose_sweep.gt.npz"):  # (refused naming the format alone: now the way)
+        rc = main(["track", str(synth / "pose_sweep.avi"), "--out", str(tmp_path / "r"),
+                   "--landmarks", str(synth / given)])  # fmt: skip
+        err = capsys.readouterr().err
+        assert rc == 2 and f"its first frame's landmarks are {lm} (torchface render-demo writes it)" in err, err
     argv = command.split()[1:]
     argv[argv.index("results")] = str(tmp_path / "results")
     assert main([*argv, "--quiet"]) == 0, capsys.readouterr().err
