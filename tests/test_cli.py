@@ -37,11 +37,14 @@ def test_render_demo_writes_a_first_frame_landmarks_file_that_track_takes(tmp_pa
 
     from torchface.io import read_landmarks
 
-    synth = tmp_path / "synth"
+    import shlex
+
+    synth = tmp_path / "my synth"  # (the command printed is quoted for a shell)
     assert main(["render-demo", "--out", str(synth), "--frames", "3", "--width", "160", "--height", "120"]) == 0
     text = capsys.readouterr().out
     lm = synth / "pose_sweep_first_frame.csv"
-    command = f"torchface track {synth / 'pose_sweep.avi'} --out results --landmarks {lm}"
+    video = shlex.quote(str(synth / "pose_sweep.avi"))
+    command = f"torchface track {video} --out results --landmarks {shlex.quote(str(lm))}"
     assert command in text, text
     truth = load_ground_truth(synth / "pose_sweep.gt.npz").landmarks_px[0].numpy()
     assert np.array_equal(read_landmarks(lm, 160, 120), truth)
@@ -50,7 +53,7 @@ def test_render_demo_writes_a_first_frame_landmarks_file_that_track_takes(tmp_pa
                    "--landmarks", str(synth / given)])  # fmt: skip
         err = capsys.readouterr().err
         assert rc == 2 and f"its first frame's landmarks are {lm} (torchface render-demo writes it)" in err, err
-    argv = command.split()[1:]
+    argv = shlex.split(command)[1:]
     argv[argv.index("results")] = str(tmp_path / "results")
     assert main([*argv, "--quiet"]) == 0, capsys.readouterr().err
     assert (tmp_path / "results" / "pose_sweep.csv").is_file()

@@ -37,6 +37,7 @@ import atexit
 import contextlib
 import math
 import os
+import shlex
 import signal
 import sys
 import threading
@@ -590,7 +591,8 @@ def _render_demo(args: argparse.Namespace) -> int:
     print(f"  metadata      {files.metadata}")
     print(f"  first frame   {first_frame} (its 68 landmarks, pixels: a --landmarks file)")
     print("load it with torchface.synth.load_ground_truth and torchface.synth.read_video; track it with")
-    print(f"  torchface track {files.video} --out results --landmarks {first_frame}")
+    print(f"  torchface track {shlex.quote(str(files.video))} --out results --landmarks "
+          f"{shlex.quote(str(first_frame))}")  # (quoted where a shell needs it: a folder 'my synth')
     return 0
 
 
