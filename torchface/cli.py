@@ -550,8 +550,6 @@ def _render_demo(args: argparse.Namespace) -> int:
     68 landmarks as a ``--landmarks`` file, ``<name>_first_frame.csv`` (``x,y`` rows, pixels; empty cells for a point
     outside the frame), so that ``torchface track`` tracks the clip as it is: the ground truth's files are no
     landmarks file (``--landmarks <name>.gt.json`` or ``.gt.npz`` is refused), and a user had to write one in Python."""
-    import numpy as np
-
     from torchface._atomic import written_whole
     from torchface.io.errors import dangling_link
     from torchface.io.video import opencv_path
