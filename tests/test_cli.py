@@ -59,6 +59,18 @@ def test_render_demo_writes_a_first_frame_landmarks_file_that_track_takes(tmp_pa
     assert (tmp_path / "results" / "pose_sweep.csv").is_file()
 
 
+def test_render_demo_help_lists_the_scenarios(capsys):
+    """``render-demo --help`` said "scenario name" without the names (only a wrong one was told them); it lists
+    ``torchface.synth.scenarios.SCENARIOS``, which the parser, importing no torch, writes out itself."""
+    from torchface.cli import RENDER_SCENARIOS
+    from torchface.synth.scenarios import SCENARIOS
+
+    assert RENDER_SCENARIOS == tuple(SCENARIOS)
+    with pytest.raises(SystemExit):
+        main(["render-demo", "--help"])
+    assert f"scenario: {', '.join(SCENARIOS)} (default" in " ".join(capsys.readouterr().out.split())
+
+
 def test_render_demo_rejects_unknown_scenario(tmp_path, capsys):
     assert main(["render-demo", "--out", str(tmp_path), "--scenario", "nope", "--frames", "2"]) == 2
     assert "unknown scenario" in capsys.readouterr().err

@@ -223,6 +223,12 @@ class ProgressDisplay:
                 self._write(line + "\n")
 
 
+#: The scenarios ``render-demo`` renders, ``torchface.synth.scenarios.SCENARIOS``' names, which its ``--help`` lists
+#: (it said "scenario name", and only a wrong one was told them). Written here: that module imports torch, which
+#: the parser does not (tests/test_cli.py holds the two equal).
+RENDER_SCENARIOS: tuple[str, ...] = ("pose_sweep", "expressions", "light_switch", "occlusion", "scan_motion")
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of the ``torchface`` command."""
     # (python -OO / PYTHONOPTIMIZE=2 strips docstrings: __doc__ is None there)
@@ -340,7 +346,8 @@ def build_parser() -> argparse.ArgumentParser:
     render.add_argument(
         "--out", type=_path, default=Path("torchface-synth"), help="output folder (default ./torchface-synth)"
     )
-    render.add_argument("--scenario", default="pose_sweep", help="scenario name (default pose_sweep)")
+    render.add_argument("--scenario", default="pose_sweep",
+                        help=f"scenario: {', '.join(RENDER_SCENARIOS)} (default pose_sweep)")  # fmt: skip
     render.add_argument("--frames", type=int, default=40, help="number of frames (default 40)")
     render.add_argument("--width", type=int, default=320, help="frame width (default 320)")
     render.add_argument("--height", type=int, default=240, help="frame height (default 240)")
