@@ -28,6 +28,49 @@ def test_render_demo_writes_a_sequence(tmp_path, capsys):
     assert load_ground_truth(out / "pose_sweep.gt.npz").num_frames == 3
 
 
+def test_render_demo_writes_a_first_frame_landmarks_file_that_track_takes(tmp_path, capsys):
+    """``render-demo``'s clip could not be tracked by ``torchface track`` without writing a landmarks file in Python:
+    its ground truth files are no ``--landmarks`` file (``.gt.json`` and ``.gt.npz`` are refused). It writes
+    ``<name>_first_frame.csv``, the ground truth's frame-0 landmarks exactly, and prints the command that tracks it;
+    the ground truth's files given as ``--landmarks`` are refused naming that file."""
+    import numpy as np
+
+    from torchface.io import read_landmarks
+
+    import shlex
+
+    synth = tmp_path / "my synth"  # (the command printed is quoted for a shell)
+    assert main(["render-demo", "--out", str(synth), "--frames", "3", "--width", "160", "--height", "120"]) == 0
+    text = capsys.readouterr().out
+    lm = synth / "pose_sweep_first_frame.csv"
+    video = shlex.quote(str(synth / "pose_sweep.avi"))
+    command = f"torchface track {video} --out results --landmarks {shlex.quote(str(lm))}"
+    assert command in text, text
+    truth = load_ground_truth(synth / "pose_sweep.gt.npz").landmarks_px[0].numpy()
+    assert np.array_equal(read_landmarks(lm, 160, 120), truth)
+    for given in ("pose_sweep.gt.json", "pose_sweep.gt.npz"):  # (refused naming the format alone: now the way)
+        rc = main(["track", str(synth / "pose_sweep.avi"), "--out", str(tmp_path / "r"),
+                   "--landmarks", str(synth / given)])  # fmt: skip
+        err = capsys.readouterr().err
+        assert rc == 2 and f"its first frame's landmarks are {lm} (torchface render-demo writes it)" in err, err
+    argv = shlex.split(command)[1:]
+    argv[argv.index("results")] = str(tmp_path / "results")
+    assert main([*argv, "--quiet"]) == 0, capsys.readouterr().err
+    assert (tmp_path / "results" / "pose_sweep.csv").is_file()
+
+
+def test_render_demo_help_lists_the_scenarios(capsys):
+    """``render-demo --help`` said "scenario name" without the names (only a wrong one was told them); it lists
+    ``torchface.synth.scenarios.SCENARIOS``, which the parser, importing no torch, writes out itself."""
+    from torchface.cli import RENDER_SCENARIOS
+    from torchface.synth.scenarios import SCENARIOS
+
+    assert RENDER_SCENARIOS == tuple(SCENARIOS)
+    with pytest.raises(SystemExit):
+        main(["render-demo", "--help"])
+    assert f"scenario: {', '.join(SCENARIOS)} (default" in " ".join(capsys.readouterr().out.split())
+
+
 def test_render_demo_rejects_unknown_scenario(tmp_path, capsys):
     assert main(["render-demo", "--out", str(tmp_path), "--scenario", "nope", "--frames", "2"]) == 2
     assert "unknown scenario" in capsys.readouterr().err

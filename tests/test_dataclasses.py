@@ -251,6 +251,34 @@ def test_settings_that_hold_settings_or_names_refuse_other_types_naming_them():
     assert checked >= 8
 
 
+def test_settings_that_take_a_config_or_none_say_what_a_bool_is():
+    """The command line's switches (``--smooth``, ``--lookahead``, ``--no-online-refine``) lead a user to write
+    ``JobConfig(smoothing=True)`` or ``FaceTracker(refine_first=False)``, which were told the type alone ("must be a
+    SmoothingConfig or None, got bool"); now the message says what on and off are, and where the config imports
+    from. Another type is told as before."""
+    from torchface.job import JobConfig
+    from torchface.tracker import FaceTracker, SmoothingConfig
+    from training_hooks import FaceTrackingConfig
+
+    job = {"out_dir": "r", "landmarks": ("a.csv",)}
+    makers = {
+        "refine_first": (lambda v: FaceTracker(refine_first=v), "LookaheadConfig"),
+        "refine_first ": (lambda v: JobConfig(**job, refine_first=v), "LookaheadConfig"),
+        "refine_first  ": (lambda v: FaceTrackingConfig(refine_first=v), "LookaheadConfig"),
+        "lookahead": (lambda v: JobConfig(**job, lookahead=v), "LookaheadConfig"),
+        "smoothing": (lambda v: JobConfig(**job, smoothing=v), "SmoothingConfig"),
+        "expression": (lambda v: SmoothingConfig(expression=v), "OneEuroConfig"),
+    }
+    for name, (make, config) in makers.items():
+        for value in (True, False):
+            with pytest.raises(TypeError) as refused:
+                make(value)
+            assert str(refused.value) == (f"{name.strip()} must be a {config} or None, got bool: on is {config}() (its "
+                                          "defaults; from torchface.tracker), off is None")
+        with pytest.raises(TypeError, match=rf"^{name.strip()} must be a {config} or None, got str$"):
+            make("yes")
+
+
 def test_settings_of_several_numbers_refuse_other_types_naming_them():
     """The settings that hold a tuple of numbers took a string as its characters (``TrackerConfig(
     expression_prior_weights="1" * 11)``: eleven ones, silently; bytes: their codes, 49.0), a bool element as 0 or 1

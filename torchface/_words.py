@@ -21,3 +21,19 @@ def counted(n: int, noun: str, many: str | None = None) -> str:
         ('1 frame', '0 frames', '3 videos')
     """
     return f"{n} {plural(n, noun, many)}"
+
+
+def switch_hint(value: object, config: str, module: str = "torchface.tracker") -> str:
+    """For a setting that takes a ``config`` or None (``refine_first``, ``lookahead``, ``smoothing``, a filter of
+    ``SmoothingConfig``), the way from a bool to it, as the command line's switches (``--smooth``, ``--lookahead``,
+    ``--no-online-refine``) lead a user to write ``smoothing=True``: ``""`` for any other value (its type says enough).
+
+    Example:
+        >>> switch_hint(True, "SmoothingConfig")
+        ': on is SmoothingConfig() (its defaults; from torchface.tracker), off is None'
+        >>> switch_hint("yes", "SmoothingConfig")
+        ''
+    """
+    if not isinstance(value, bool):
+        return ""
+    return f": on is {config}() (its defaults; from {module}), off is None"

@@ -13,6 +13,7 @@ Examples::
     torchface track clips/*.mp4 --out results --detector dlib --keep-going   # skip the bad ones (status 3)
     torchface track clip.mp4 --out results --landmarks lm.csv --keep-expression   # normalised face keeps expressions
     torchface render-demo --scenario pose_sweep --out synth    # a synthetic clip with ground truth
+    torchface track synth/pose_sweep.avi --out results --landmarks synth/pose_sweep_first_frame.csv   # tracked
 
 Errors about the input or the output folder print one line ``torchface: error: ...`` and exit with status 2
 (grayscale, RGBA, 16-bit and odd-sized frames are such errors unless ``--convert`` is given; a frame that cannot
@@ -36,6 +37,7 @@ import atexit
 import contextlib
 import math
 import os
+import shlex
 import signal
 import sys
 import threading
@@ -221,6 +223,12 @@ class ProgressDisplay:
                 self._write(line + "\n")
 
 
+#: The scenarios ``render-demo`` renders, ``torchface.synth.scenarios.SCENARIOS``' names, which its ``--help`` lists
+#: (it said "scenario name", and only a wrong one was told them). Written here: that module imports torch, which
+#: the parser does not (tests/test_cli.py holds the two equal).
+RENDER_SCENARIOS: tuple[str, ...] = ("pose_sweep", "expressions", "light_switch", "occlusion", "scan_motion")
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of the ``torchface`` command."""
     # (python -OO / PYTHONOPTIMIZE=2 strips docstrings: __doc__ is None there)
@@ -338,7 +346,8 @@ def build_parser() -> argparse.ArgumentParser:
     render.add_argument(
         "--out", type=_path, default=Path("torchface-synth"), help="output folder (default ./torchface-synth)"
     )
-    render.add_argument("--scenario", default="pose_sweep", help="scenario name (default pose_sweep)")
+    render.add_argument("--scenario", default="pose_sweep",
+                        help=f"scenario: {', '.join(RENDER_SCENARIOS)} (default pose_sweep)")  # fmt: skip
     render.add_argument("--frames", type=int, default=40, help="number of frames (default 40)")
     render.add_argument("--width", type=int, default=320, help="frame width (default 320)")
     render.add_argument("--height", type=int, default=240, help="frame height (default 240)")
@@ -544,11 +553,15 @@ def _render_progress(label: str, start: float):
 
 
 def _render_demo(args: argparse.Namespace) -> int:
-    """Render a synthetic sequence with ground truth (the renderer's former ``demo`` command)."""
+    """Render a synthetic sequence with ground truth (the renderer's former ``demo`` command), and its first frame's
+    68 landmarks as a ``--landmarks`` file, ``<name>_first_frame.csv`` (``x,y`` rows, pixels; empty cells for a point
+    outside the frame), so that ``torchface track`` tracks the clip as it is: the ground truth's files are no
+    landmarks file (``--landmarks <name>.gt.json`` or ``.gt.npz`` is refused), and a user had to write one in Python."""
+    from torchface._atomic import written_whole
     from torchface.io.errors import dangling_link
     from torchface.io.video import opencv_path
     from torchface.synth.scenarios import SCENARIOS, make_scenario
-    from torchface.synth.sequence import write_sequence
+    from torchface.synth.sequence import load_ground_truth, write_sequence
 
     if args.scenario not in SCENARIOS:
         raise ValueError(f"unknown scenario {args.scenario!r}; choose from {', '.join(SCENARIOS)}")
@@ -564,15 +577,27 @@ def _render_demo(args: argparse.Namespace) -> int:
             raise ValueError(f"--out {args.out}: {folder} is a file, not a folder")
     opencv_path(args.out, ValueError)  # (the video is written by OpenCV: refused before the folder is made)
     spec = make_scenario(args.scenario, args.frames, args.width, args.height)
+    first_frame = args.out / f"{spec.name}_first_frame.csv"
+    with contextlib.suppress(FileNotFoundError, NotADirectoryError):  # (an earlier render's: never beside this one's)
+        first_frame.unlink()
     start = time.perf_counter()
     files = write_sequence(spec, args.out, batch_size=8, progress=_render_progress(f"rendering {spec.name}", start))
     sys.stdout.write("\n")
+    points = load_ground_truth(files.ground_truth).landmarks_px[0].numpy()  # (68, 2) float64 pixels
+    u, v = points[:, 0], points[:, 1]
+    inside = (u >= -0.5) & (u <= args.width - 0.5) & (v >= -0.5) & (v <= args.height - 0.5)
+    rows = [f"{x!r},{y!r}" if ok else "," for (x, y), ok in zip(points.tolist(), inside.tolist())]
+    with written_whole(first_frame) as tmp:
+        tmp.write_text("x,y\n" + "\n".join(rows) + "\n", encoding="utf-8")
     took = time.perf_counter() - start
     print(f"wrote {counted(files.num_frames, 'frame')} ({args.width}x{args.height}, {spec.subject}) in {took:.1f} s:")
     print(f"  video         {files.video} (codec {files.codec.strip()})")
     print(f"  ground truth  {files.ground_truth}")
     print(f"  metadata      {files.metadata}")
-    print("load it with torchface.synth.load_ground_truth and torchface.synth.read_video")
+    print(f"  first frame   {first_frame} (its 68 landmarks, pixels: a --landmarks file)")
+    print("load it with torchface.synth.load_ground_truth and torchface.synth.read_video; track it with")
+    print(f"  torchface track {shlex.quote(str(files.video))} --out results --landmarks "
+          f"{shlex.quote(str(first_frame))}")  # (quoted where a shell needs it: a folder 'my synth')
     return 0
 
 

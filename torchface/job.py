@@ -160,7 +160,7 @@ from torch import Tensor
 from torchface import _checkpoint
 from torchface._device import check_device
 from torchface._paths import check_no_tilde
-from torchface._words import counted, plural
+from torchface._words import counted, plural, switch_hint
 from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS
 from torchface.detect import _Batched, _uint8_planes, accepts_near, detector_image, search_first_face, usable_detection
 from torchface.geometry._checks import check_bool, check_int, check_number, rotation_defects
@@ -449,7 +449,8 @@ class JobConfig:
 
     def __post_init__(self) -> None:
         if self.smoothing is not None and not isinstance(self.smoothing, SmoothingConfig):
-            raise TypeError(f"smoothing must be a SmoothingConfig or None, got {type(self.smoothing).__name__}")
+            raise TypeError(f"smoothing must be a SmoothingConfig or None, got {type(self.smoothing).__name__}"
+                            f"{switch_hint(self.smoothing, 'SmoothingConfig')}")  # (smoothing=True, as --smooth)
         if self.smoothing is not None and self.smoothing.expression is not None:
             raise ValueError("smoothing.expression must be None: torchface track smooths the pose only (the rows' "
                              "expression stays raw; ResultSmoother smooths it in Python)")  # fmt: skip
@@ -484,7 +485,8 @@ class JobConfig:
         if not isinstance(self.tracker, TrackerConfig):
             raise TypeError(f"tracker must be a TrackerConfig, got {type(self.tracker).__name__}")
         if self.lookahead is not None and not isinstance(self.lookahead, LookaheadConfig):
-            raise TypeError(f"lookahead must be a LookaheadConfig or None, got {type(self.lookahead).__name__}")
+            raise TypeError(f"lookahead must be a LookaheadConfig or None, got {type(self.lookahead).__name__}"
+                            f"{switch_hint(self.lookahead, 'LookaheadConfig')}")  # (lookahead=True, as --lookahead)
         for name, start in (("refine_first", _online_start(self)), ("lookahead", self.lookahead)):
             if start is not None:  # (iterations for the tracker's levels: refused once a batch began, or at the turn)
                 levels_of(start, self.tracker.num_levels, f"{name}.iterations")

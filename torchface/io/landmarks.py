@@ -244,8 +244,28 @@ def _read_text(p: Path) -> str:
             raise InputError(f"{p}: cannot read landmarks (a UTF-16 byte order mark, then no UTF-16 text)") from None
         text = data.decode("latin-1")
     if "\x00" in text:
-        raise InputError(f"{p}: not a text file (NUL bytes): landmarks are a CSV, an iBUG .pts or a .npy file")
+        raise InputError(f"{p}: not a text file (NUL bytes): landmarks are a CSV, an iBUG .pts or a .npy file"
+                         f"{_ground_truth_hint(p)}")
     return text
+
+
+def _ground_truth_hint(p: Path) -> str:
+    """Where a ``torchface.synth`` ground truth (``<name>.gt.json`` / ``<name>.gt.npz``, as ``torchface render-demo``
+    writes them) was given as ``--landmarks``: the file beside it that is its first frame's landmarks (the natural
+    choice was refused naming the format alone); ``""`` for any other file.
+
+    Example:
+        >>> _ground_truth_hint(Path("synth/pose_sweep.gt.npz")).split("; ")[1][:64]
+        "its first frame's landmarks are synth/pose_sweep_first_frame.csv"
+        >>> _ground_truth_hint(Path("lm.json")), _ground_truth_hint(Path(".gt.json"))
+        ('', '')
+    """
+    for suffix in (".gt.json", ".gt.npz"):
+        if p.name.endswith(suffix) and len(p.name) > len(suffix):
+            first = p.with_name(p.name[: -len(suffix)] + "_first_frame.csv")
+            return (f": a torchface.synth ground truth; its first frame's landmarks are {first} (torchface render-demo "
+                    "writes it), or load_ground_truth(path).landmarks_px[0]")
+    return ""
 
 
 def _parse_json(p: Path, text: str, count: int = NUM_LANDMARKS) -> np.ndarray:
@@ -259,7 +279,7 @@ def _parse_json(p: Path, text: str, count: int = NUM_LANDMARKS) -> np.ndarray:
     if isinstance(value, dict):
         if value.get("initial_landmarks_px") is None:
             raise InputError(f"{p}: a JSON object without initial_landmarks_px (a torchface sidecar's): expected a "
-                             f"list of {count} [x, y] pairs, or a sidecar")  # fmt: skip
+                             f"list of {count} [x, y] pairs, or a sidecar{_ground_truth_hint(p)}")  # fmt: skip
         start = value.get("start")
         first = start.get("first_frame") if isinstance(start, dict) else None
         if isinstance(first, int) and first != 0:  # (a detector's first face: those landmarks are that frame's)

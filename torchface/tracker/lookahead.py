@@ -43,6 +43,7 @@ import torch
 from torch import Tensor
 
 from torchface._autocast import full_precision
+from torchface._words import switch_hint
 from torchface.appearance.sampling import image_with_gradients, sample_at_pixels
 from torchface.backend import Backend
 from torchface.geometry._checks import check_bool, check_int, check_ints, check_names, check_number, check_real
@@ -189,7 +190,8 @@ def check_refine_first(refine_first: object) -> None:
     """Refuse a ``refine_first`` setting (:func:`~torchface.tracker.managed.initialise_managed`, ``FaceTracker``,
     ``TrackJob``, training_hooks' ``FaceTrackingConfig``) that is neither a :class:`LookaheadConfig` nor None."""
     if refine_first is not None and not isinstance(refine_first, LookaheadConfig):
-        raise TypeError(f"refine_first must be a LookaheadConfig or None, got {type(refine_first).__name__}")
+        raise TypeError(f"refine_first must be a LookaheadConfig or None, got {type(refine_first).__name__}"
+                        f"{switch_hint(refine_first, 'LookaheadConfig')}")  # (refine_first=False: None turns it off)
 
 
 def kept_shape_indices(

@@ -54,6 +54,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from torchface._words import switch_hint
 from torchface.geometry._checks import check_number
 from torchface.geometry.so3 import axis_angle_to_matrix, matrix_to_axis_angle, matrix_to_euler
 from torchface.model.face_model import FaceModel
@@ -126,7 +127,8 @@ class SmoothingConfig:
         for name in ("rotation", "translation", "expression"):
             value = getattr(self, name)
             if value is not None and not isinstance(value, OneEuroConfig):
-                raise TypeError(f"{name} must be a OneEuroConfig or None, got {type(value).__name__}")
+                raise TypeError(f"{name} must be a OneEuroConfig or None, got {type(value).__name__}"
+                                f"{switch_hint(value, 'OneEuroConfig')}")  # (expression=True: its filter)
 
 
 @dataclass(frozen=True, eq=False)
