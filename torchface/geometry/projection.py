@@ -14,7 +14,9 @@ from __future__ import annotations
 import torch
 
 from torchface.conventions import NEAR_PLANE_MM
-from torchface.geometry._checks import check_batch, check_exact_dim, check_intrinsics, check_tensor, promoted
+from torchface.geometry._checks import (
+    check_batch, check_batches, check_exact_dim, check_intrinsics, check_tensor, promoted,
+)
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.so3 import axis_angle_to_matrix, hat, rotate_points_jacobian
 from torchface.geometry.transforms import transform_points
@@ -149,7 +151,7 @@ def pose_projection_jacobian(
     check_tensor(points_model, "points_model", (3,))
     check_exact_dim(points_model, "points_model", (2, 3), "(B, N, 3) or (N, 3)")
     if points_model.dim() == 3:  # (named here: transform_points' message named its R)
-        check_batch(aa.shape[0], points_model.shape[0], "aa", "points_model")
+        check_batches(("aa", aa.shape[0]), ("t", t.shape[0]), ("points_model", points_model.shape[0]))
     cam = check_intrinsics(intrinsics)
     aa, t, points_model = promoted(aa, t, points_model)
     R = axis_angle_to_matrix(aa)
