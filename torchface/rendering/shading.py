@@ -410,15 +410,18 @@ def render(
         raise ValueError(f"uv must be (V, 2) or (B, V, 2) with V={v} and B={b} like verts_cam, got {tuple(uv.shape)}")
     if texture.ndim not in (3, 4):
         raise ValueError(f"texture must be (3, Ht, Wt) or (B, 3, Ht, Wt), got {tuple(texture.shape)}")
-    for name, x in (("verts_cam", verts_cam), ("normals_cam", normals_cam), ("uv", uv), ("texture", texture),
-                    ("background", background)):  # fmt: skip
-        if x is not None and not x.is_floating_point():
-            hint = " (uint8: .float() / 255)" if x.dtype == torch.uint8 else ""
-            raise TypeError(f"{name} must be a floating-point tensor, got {x.dtype}{hint}")
-    for name, x in (("normals_cam", normals_cam), ("uv", uv), ("texture", texture), ("light", light.ambient),
-                    ("background", background)):  # fmt: skip
-        if x is not None and x.device != verts_cam.device:  # (torch's "Expected all tensors to be on the same device")
-            raise ValueError(f"{name} must be on verts_cam's device {verts_cam.device}, got {x.device}")
+    tensors: tuple[tuple[str, Tensor | None], ...] = (
+        ("verts_cam", verts_cam), ("normals_cam", normals_cam), ("uv", uv), ("texture", texture),
+        ("background", background),
+    )  # fmt: skip
+    for name, value in tensors:
+        if value is not None and not value.is_floating_point():
+            hint = " (uint8: .float() / 255)" if value.dtype == torch.uint8 else ""
+            raise TypeError(f"{name} must be a floating-point tensor, got {value.dtype}{hint}")
+    for name, value in (*tensors[1:], ("light", light.ambient)):
+        if value is not None and value.device != verts_cam.device:  # (torch's "Expected all tensors to be on the
+            # same device")
+            raise ValueError(f"{name} must be on verts_cam's device {verts_cam.device}, got {value.device}")
     if background is not None:
         _check_tensor("background", background, 4)
         if background.shape[1:] != (3, h, w) or background.shape[0] not in (1, b):
