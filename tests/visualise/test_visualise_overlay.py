@@ -376,3 +376,23 @@ def test_overlay_arguments_are_checked_by_name():
     want = draw_overlay(img, verts[0], edges, axes[0], 0.9, False)
     tracked = verts[0].clone().requires_grad_()
     assert np.array_equal(draw_overlay(img, tracked, edges, axes[0], 0.9, torch.tensor(False)), want)
+
+
+def test_au_groups_and_plot_track_refuse_rows_of_other_columns(tmp_path):
+    """Both read ``rows.reshape(-1, len(columns))``: a table of other columns, or a transposed one, was taken whenever
+    the sizes divided, and its values read under the wrong names (AUs of one unit told apart: two AU columns over a
+    3-column table grouped nothing). Now a ValueError saying the shape; one row as (C,) and none as [] still go."""
+    from torchface.visualise import au_groups
+
+    cols = ("AU23_r", "AU24_r", "AU26_r")
+    rows = np.array([[0.1, 0.1, 0.3], [0.2, 0.2, 0.0]])
+    assert au_groups(cols, rows) == [("AU23_r", "AU24_r"), ("AU26_r",)]
+    assert au_groups(cols, rows[0]) == [("AU23_r", "AU24_r"), ("AU26_r",)]
+    assert au_groups(cols, []) == [cols]  # (no values: every series the same)
+    with pytest.raises(ValueError, match=r"rows must be \(T, C\) with C = len\(columns\) = 2, got shape \(2, 3\)"):
+        au_groups(cols[:2], rows)
+    with pytest.raises(ValueError, match=r"rows must be \(T, C\) with C = len\(columns\) = 3, got shape \(3, 2\)"):
+        au_groups(cols, rows.T)
+    with pytest.raises(ValueError, match=r"rows must be \(T, C\) with C = len\(columns\) = 3, got shape \(3, 2\)"):
+        plot_track(cols, rows.T, tmp_path / "plot.png")
+    assert not (tmp_path / "plot.png").exists()
