@@ -1128,3 +1128,16 @@ def test_flags_must_be_bools(model, layout):
     got = normalised_face(frames, model, layout, S, A, torch.zeros(1, 3), T_FRONT, None, CAM, zbuffer=np.bool_(False))
     want = normalised_face(frames, model, layout, S, A, torch.zeros(1, 3), T_FRONT, None, CAM, zbuffer=False)
     assert torch.equal(got.image, want.image)
+
+
+def test_normalised_face_keeps_a_callers_cpu_autocast_out(model, layout):
+    """normalised_face is @full_precision: under a caller's CPU autocast (bfloat16) it gives the float32 face of full
+    precision, the same as without it (a helper defined between the decorator and the function once took the
+    decorator away, and no test said so)."""
+    frames = torch.rand(1, 3, 240, 320, generator=torch.Generator().manual_seed(0))
+    S, A = _zeros(model)
+    args = (frames, model, layout, S, A, torch.tensor([[0.05, -0.1, 0.02]]), T_FRONT, None, CAM)
+    want = normalised_face(*args).image
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        got = normalised_face(*args).image
+    assert got.dtype == torch.float32 and torch.equal(got, want)

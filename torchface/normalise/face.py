@@ -407,13 +407,13 @@ def _face_crop(verts_cam: Tensor, used: Tensor, intrinsics: Intrinsics) -> Intri
     )
 
 
-@full_precision
 def _check_flags(zbuffer: object, check_values: object) -> tuple[bool, bool]:
     """``zbuffer`` and ``check_values`` as bools (check_bool: ``zbuffer="no"`` was taken as true, and
     ``check_values="no"`` too, where ``0`` skipped the frames' check)."""
     return check_bool(zbuffer, "zbuffer"), check_bool(check_values, "check_values")
 
 
+@full_precision
 def normalised_face(
     frames: Tensor,
     model: FaceModel,
