@@ -16,8 +16,8 @@ import torch
 from torch import Tensor
 
 from torchface.conventions import NEAR_PLANE_MM
-from torchface.geometry.camera import Intrinsics
 from torchface.geometry._checks import check_batches, check_bool
+from torchface.geometry.camera import Intrinsics
 from torchface.geometry.projection import project_points
 from torchface.geometry.transforms import _check_pose, transform_points
 from torchface.model.face_model import FaceModel
