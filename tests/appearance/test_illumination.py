@@ -37,7 +37,8 @@ def test_basis_shape_and_columns():
     buffer = torch.full((2, NUM_ILLUMINATION_TERMS, 7), float("nan"), dtype=D)
     written = illumination_basis(tpl, n, out=buffer.transpose(1, 2))
     assert written.data_ptr() == buffer.data_ptr() and torch.equal(written, basis)
-    with pytest.raises(ValueError, match=r"out must be \(B, N, 5\), got \(2, 5, 7\)"):
+    with pytest.raises(ValueError, match=r"out must be \(B, N, 5\) = \(2, 7, 5\) torch.float64 on cpu, "
+                                         r"got \(2, 5, 7\)"):  # fmt: skip
         illumination_basis(tpl, n, out=buffer)
 
 
@@ -109,8 +110,43 @@ def test_remove_refuses_a_floor_that_is_not_positive(min_gain):
     gave NaN everywhere; now a clear error."""
     n = torch.tensor([[[0.0, 0.0, -1.0]]], dtype=D)
     params = torch.tensor([[-1.0, 0.0, 0.0, 0.0, 0.0]], dtype=D)  # gain 1 + (-1) = 0
-    with pytest.raises(ValueError, match="min_gain must be positive and finite"):
+    with pytest.raises(ValueError, match="min_gain must be a finite number > 0"):
         remove_illumination(torch.tensor([[0.5]], dtype=D), n, params, min_gain=min_gain)
+
+
+@pytest.mark.parametrize("min_gain", ["0.05", None, True])
+def test_remove_refuses_a_floor_that_is_not_a_number(min_gain):
+    """check_number's rule: "0.05" was taken (float() of it), None was float()'s TypeError; now a TypeError naming
+    min_gain."""
+    n = torch.tensor([[[0.0, 0.0, -1.0]]], dtype=D)
+    with pytest.raises(TypeError, match="min_gain must be a real number"):
+        remove_illumination(torch.tensor([[0.5]], dtype=D), n, torch.zeros(1, 5, dtype=D), min_gain=min_gain)
+
+
+def test_illumination_mixed_dtypes_are_promoted_and_non_tensors_named():
+    """apply_illumination and remove_illumination raised einsum's "expected scalar type Double but found Float" on
+    float32 against float64 (the geometry functions promote); illumination_basis met a numpy array with "no
+    attribute 'dim'", and wrote into an ``out`` of another dtype (rounded), where to_gray's and pyr_down's refuse."""
+    g = torch.Generator().manual_seed(3)
+    template, normals = torch.rand(2, 4, dtype=D, generator=g), torch.randn(2, 4, 3, dtype=D, generator=g)
+    basis = illumination_basis(template, normals)
+    params = torch.randn(2, 5, dtype=D, generator=g) * 0.1
+    got = apply_illumination(template.float(), basis, params.float())
+    assert got.dtype == D
+    torch.testing.assert_close(got, apply_illumination(template.float().double(), basis, params.float().double()),
+                               rtol=0, atol=0)  # fmt: skip
+    got = remove_illumination(template.float(), normals, params)
+    assert got.dtype == D
+    torch.testing.assert_close(got, remove_illumination(template.float().double(), normals, params), rtol=0, atol=0)
+    with pytest.raises(TypeError, match="template must be a floating-point torch.Tensor, got ndarray"):
+        illumination_basis(template.numpy(), normals)
+    with pytest.raises(TypeError, match="normals_cam must be a floating-point torch.Tensor, got dtype torch.int64"):
+        illumination_basis(template, normals.long())
+    with pytest.raises(ValueError, match=r"out must be \(B, N, 5\) = \(2, 4, 5\) torch.float64 on cpu, got .*32"):
+        illumination_basis(template, normals, out=torch.empty(2, 4, 5))
+    out = torch.empty(2, 4, 5, dtype=D)
+    assert illumination_basis(template, normals, out=out) is out
+    torch.testing.assert_close(out, basis, rtol=0, atol=0)
 
 
 def test_gradcheck_apply():

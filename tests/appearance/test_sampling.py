@@ -262,3 +262,31 @@ def test_pyr_down_gradcheck():
 
     x = torch.rand(1, 1, 7, 8, generator=torch.Generator().manual_seed(3), dtype=torch.float64, requires_grad=True)
     assert torch.autograd.gradcheck(pyr_down, (x,))
+
+
+def test_sampling_refuses_what_torch_would_fail_deep_inside():
+    """sample_at_pixels met a numpy array with "'numpy.ndarray' object has no attribute 'dim'" and uint8 images
+    with grid_sample's "not implemented for 'Byte'"; image_with_gradients of to_gray's uint8 gray with "result type
+    Float can't be cast to the desired output type Byte"; pixels_to_grid had no check (a size of 0 or -3 taken, a
+    (B, N, 3) tensor torch's "The size of tensor a (3) must match"). Each is now an error naming the argument."""
+    images = torch.rand(1, 3, 8, 10, dtype=D)
+    points = torch.tensor([[[1.0, 2.0]]], dtype=D)
+    with pytest.raises(TypeError, match="images must be a floating-point torch.Tensor, got ndarray"):
+        sample_at_pixels(images.numpy(), points)
+    with pytest.raises(TypeError, match="points_px must be a floating-point torch.Tensor, got ndarray"):
+        sample_at_pixels(images, points.numpy())
+    with pytest.raises(TypeError, match=r"images must be a floating-point torch.Tensor, got dtype torch.uint8 "
+                                        r"\(uint8 frames: images.float\(\) / 255\)"):  # fmt: skip
+        sample_at_pixels((images * 255).to(torch.uint8), points)
+    gray_u8 = to_gray((images * 255).to(torch.uint8))
+    with pytest.raises(TypeError, match="gray must be a floating-point tensor, got dtype torch.uint8"):
+        image_with_gradients(gray_u8)
+    with pytest.raises(ValueError, match=r"points_px must have shape \(\.\.\., 2\)"):
+        pixels_to_grid(torch.zeros(1, 3, 3), 8, 10)
+    with pytest.raises(ValueError, match="height must be an int >= 1, got 0"):
+        pixels_to_grid(points, 0, 10)
+    with pytest.raises(TypeError, match="width must be an int >= 1, got float 10.5"):
+        pixels_to_grid(points, 8, 10.5)
+    # the checked function gives what sample_at_pixels uses
+    want = torch.tensor([[[-1 + 2 / 9, -1 + 4 / 7]]], dtype=D)
+    torch.testing.assert_close(pixels_to_grid(points, 8, 10), want)

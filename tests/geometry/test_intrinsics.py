@@ -287,3 +287,14 @@ def test_a_camera_given_as_a_matrix_or_numbers_is_told_how_to_make_intrinsics(gi
     assert (cam.fx, cam.fy, cam.cx, cam.cy) == (600.0, 600.0, 319.5, 239.5)
     with pytest.raises(TypeError, match=r"^intrinsics must be torchface.geometry.Intrinsics, got NoneType$"):
         check_intrinsics(None)  # (nothing to say of another type)
+
+
+def test_matrix_device_is_checked_as_every_device_torchface_takes():
+    """Intrinsics.matrix(device="gpu0") was torch's RuntimeError "Invalid device string", and device="meta" a
+    matrix without values; check_device's ValueError names the device and the devices here."""
+    K = Intrinsics.default(64, 48)
+    for device in ("gpu0", "meta"):
+        with pytest.raises(ValueError, match=f"'{device}'.*devices here: cpu"):
+            K.matrix(device=device)
+    assert torch.equal(K.matrix(device="cpu"), K.matrix())
+    assert K.matrix(torch.float64, torch.device("cpu")).dtype == torch.float64

@@ -179,3 +179,16 @@ def test_bad_inputs_raise() -> None:
         unproject(torch.zeros(1, 3, 2), [1.0, 2.0, 3.0], CAM)
     with pytest.raises(ValueError, match="batch sizes"):
         pose_projection_jacobian(torch.zeros(2, 3), torch.zeros(3, 3), torch.zeros(4, 3), CAM)
+
+
+def test_in_front_checks_near():
+    """in_front's near was not looked at: a string was torch's "'>' not supported between instances of 'Tensor' and
+    'str'", NaN made every point "behind" without a word; now check_number's errors, as the rasterizer's near."""
+    points = torch.tensor([[[0.0, 0.0, 500.0], [0.0, 0.0, 0.5]]])
+    with pytest.raises(TypeError, match=r"^near must be a real number, got str '1'"):
+        in_front(points, near="1")  # type: ignore[arg-type]
+    for near in (float("nan"), 0.0, -5.0, float("inf")):
+        with pytest.raises(ValueError, match=r"^near must be a finite number > 0 \(millimetres\), got"):
+            in_front(points, near=near)
+    assert in_front(points, near=1).tolist() == [[True, False]]
+    assert in_front(points, near=torch.tensor(0.25)).tolist() == [[True, True]]

@@ -147,3 +147,26 @@ def test_batch_shape_check_imports_nothing_more() -> None:
     for bad in ((2,), (4, 3), (3, 3, 3)):
         with pytest.raises(ValueError, match="must broadcast"):
             geodesic_angle_deg(R, torch.eye(3, dtype=F64).expand(*bad, 3, 3))
+
+
+def test_three_batched_arguments_are_checked_together() -> None:
+    """transform_points checked R against t and R against points, compose R1 against t1, R2 against t2 and R1
+    against R2: a size-1 argument let the other two disagree (R (1), t (2), points (3)), and torch's RuntimeError
+    "The size of tensor a (3) must match the size of tensor b (2)" came from the arithmetic; pose_projection_jacobian
+    likewise for t against points_model. Each is now the ValueError naming the pair."""
+    from torchface.geometry import Intrinsics, pose_projection_jacobian
+
+    eye = torch.eye(3, dtype=F64)
+    with pytest.raises(ValueError, match=r"batch sizes of t \(2\) and points \(3\) must match or be 1"):
+        transform_points(eye[None], torch.zeros(2, 3, dtype=F64), torch.zeros(3, 5, 3, dtype=F64))
+    with pytest.raises(ValueError, match=r"batch sizes of R1 \(2\) and t2 \(3\) must match or be 1"):
+        compose(eye.expand(2, 3, 3), torch.zeros(1, 3, dtype=F64), eye[None], torch.zeros(3, 3, dtype=F64))
+    with pytest.raises(ValueError, match=r"batch sizes of t1 \(2\) and t2 \(3\) must match or be 1"):
+        compose(eye[None], torch.zeros(2, 3, dtype=F64), eye[None], torch.zeros(3, 3, dtype=F64))
+    with pytest.raises(ValueError, match=r"batch sizes of t \(2\) and points_model \(3\) must match or be 1"):
+        pose_projection_jacobian(torch.zeros(1, 3, dtype=F64), torch.zeros(2, 3, dtype=F64) + 500.0,
+                                 torch.zeros(3, 5, 3, dtype=F64), Intrinsics.default(32, 24))  # fmt: skip
+    # size 1 against any one size still broadcasts
+    assert transform_points(eye[None], torch.zeros(3, 3, dtype=F64), torch.zeros(1, 5, 3, dtype=F64)).shape == (3, 5, 3)
+    R, t = compose(eye[None], torch.zeros(1, 3, dtype=F64), eye[None], torch.zeros(4, 3, dtype=F64))
+    assert R.shape == (1, 3, 3) and t.shape == (4, 3)

@@ -1111,3 +1111,33 @@ def test_settings_assigned_after_construction_are_checked(model):
         assert getattr(normaliser, name) == before, name
     normaliser.keep_expression, normaliser.depth_tolerance, normaliser.min_facing_cos = np.bool_(True), 0.1, 0.3
     assert normaliser.keep_expression is True and normaliser.depth_tolerance == 0.1 and normaliser.min_facing_cos == 0.3
+
+
+def test_flags_must_be_bools(model, layout):
+    """normalised_face and normalised_face_posed took zbuffer and check_values by truth: zbuffer="no" ran the
+    z-buffer test, check_values="no" checked the frames (0 skipped the check). check_bool's rule, as the settings'."""
+    frames = torch.rand(1, 3, 240, 320)
+    S, A = _zeros(model)
+    verts_cam = model.deform(S, A) + T_FRONT[:, None]
+    for flag in ("zbuffer", "check_values"):
+        for value in ("no", 0, None):
+            with pytest.raises(TypeError, match=f"^{flag} must be a bool, got"):
+                normalised_face(frames, model, layout, S, A, torch.zeros(1, 3), T_FRONT, None, CAM, **{flag: value})
+            with pytest.raises(TypeError, match=f"^{flag} must be a bool, got"):
+                normalised_face_posed(frames, model, layout, verts_cam, None, CAM, **{flag: value})
+    got = normalised_face(frames, model, layout, S, A, torch.zeros(1, 3), T_FRONT, None, CAM, zbuffer=np.bool_(False))
+    want = normalised_face(frames, model, layout, S, A, torch.zeros(1, 3), T_FRONT, None, CAM, zbuffer=False)
+    assert torch.equal(got.image, want.image)
+
+
+def test_normalised_face_keeps_a_callers_cpu_autocast_out(model, layout):
+    """normalised_face is @full_precision: under a caller's CPU autocast (bfloat16) it gives the float32 face of full
+    precision, the same as without it (a helper defined between the decorator and the function once took the
+    decorator away, and no test said so)."""
+    frames = torch.rand(1, 3, 240, 320, generator=torch.Generator().manual_seed(0))
+    S, A = _zeros(model)
+    args = (frames, model, layout, S, A, torch.tensor([[0.05, -0.1, 0.02]]), T_FRONT, None, CAM)
+    want = normalised_face(*args).image
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        got = normalised_face(*args).image
+    assert got.dtype == torch.float32 and torch.equal(got, want)

@@ -219,6 +219,27 @@ def test_exception_intrinsics_and_near():
                 raster(verts, faces, CAM, near=near)
 
 
+def test_exception_option_types():
+    """A near of another type was "'<' not supported between instances of 'int' and 'str'" (rasterize) or not
+    looked at (rasterize_reference: a NaN near gave an empty image); cull_backfaces="no" was taken as true, and
+    culled; rasterize_reference met another camera type with "no attribute". Each is now check_number's,
+    check_bool's or the intrinsics' error, naming the argument."""
+    verts, faces = random_soup(0, 1, 2)
+    for raster in (rasterize, rasterize_coverage, rasterize_reference):
+        with pytest.raises(TypeError, match=r"^near must be a real number, got str '1'"):
+            raster(verts, faces, CAM, near="1")  # type: ignore[arg-type]
+        with pytest.raises(TypeError, match=r"^near must be a real number, got NoneType"):
+            raster(verts, faces, CAM, near=None)  # type: ignore[arg-type]
+        with pytest.raises(TypeError, match=r"^cull_backfaces must be a bool, got str 'no'"):
+            raster(verts, faces, CAM, cull_backfaces="no")  # type: ignore[arg-type]
+        with pytest.raises(TypeError, match="^intrinsics must be an Intrinsics, got tuple"):
+            raster(verts, faces, (32, 24))  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match=r"^near must be a finite number > 0 \(millimetres\), got nan"):
+        rasterize_reference(verts, faces, CAM, near=float("nan"))
+    # numbers of other types than float are still taken as the numbers they are
+    assert torch.equal(rasterize(verts, faces, CAM, near=1).pix_to_face, rasterize(verts, faces, CAM).pix_to_face)
+
+
 # ----------------------------------------------------------------------------------------- fast vs reference
 
 

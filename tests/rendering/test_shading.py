@@ -218,3 +218,64 @@ def test_validation_errors():
         render(v, f, uv, torch.rand(3, 2, 2), n, _no_lights(1), CAM, background=torch.zeros(1, 3, 10, 10))
     with pytest.raises(ValueError, match="normals_cam"):
         render(v, f, uv, torch.rand(3, 2, 2), n[:, :2], _no_lights(1), CAM)
+
+
+def test_render_names_each_bad_argument():
+    """render checked its vertices, normals, light size and background alone: a uv of another V was torch.cat's
+    "Sizes of tensors must match", a (V, 3) uv a message about normals (B, H, W, 4), a numpy uv or texture "no
+    attribute", a light or camera of another type "no attribute 'batch_size'" / "'height'", a uint8 texture was
+    taken as 0-255 albedo (every pixel clamped to white), cull_backfaces="no" culled, a tensor on another device
+    was torch's own error from inside, and B = 0 failed in a reshape."""
+    v, f, uv = _plane()
+    n = vertex_normals(v, f)
+    tex = torch.rand(3, 2, 2)
+    light = _no_lights(1)
+    with pytest.raises(ValueError, match=r"uv must be \(V, 2\) or \(B, V, 2\) with V=4 and B=1 like verts_cam, "
+                                         r"got \(3, 2\)"):  # fmt: skip
+        render(v, f, uv[:3], tex, n, light, CAM)
+    with pytest.raises(ValueError, match=r"uv must be .* got \(4, 3\)"):
+        render(v, f, torch.rand(4, 3), tex, n, light, CAM)
+    with pytest.raises(ValueError, match=r"uv must be .* got \(3, 4, 2\)"):
+        render(v, f, uv.expand(3, -1, -1), tex, n, light, CAM)
+    with pytest.raises(TypeError, match="uv must be a torch.Tensor, got ndarray"):
+        render(v, f, uv.numpy(), tex, n, light, CAM)
+    with pytest.raises(TypeError, match="texture must be a torch.Tensor, got ndarray"):
+        render(v, f, uv, tex.numpy(), n, light, CAM)
+    with pytest.raises(ValueError, match=r"texture must be \(3, Ht, Wt\) or \(B, 3, Ht, Wt\), got \(2, 2\)"):
+        render(v, f, uv, tex[0], n, light, CAM)
+    with pytest.raises(TypeError, match=r"texture must be a floating-point tensor, got torch.uint8 \(uint8: "):
+        render(v, f, uv, (tex * 255).to(torch.uint8), n, light, CAM)
+    with pytest.raises(TypeError, match="light must be a LightState, got str"):
+        render(v, f, uv, tex, n, "ambient", CAM)  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match="intrinsics must be torchface.geometry.Intrinsics, got NoneType"):
+        render(v, f, uv, tex, n, light, None)  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match="cull_backfaces must be a bool, got str 'no'"):
+        render(v, f, uv, tex, n, light, CAM, cull_backfaces="no")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="texture must be on verts_cam's device cpu, got meta"):
+        render(v, f, uv, tex.to("meta"), n, light, CAM)
+    with pytest.raises(ValueError, match="light must be on verts_cam's device cpu, got meta"):
+        meta_light = LightState(*(x.to("meta") for x in (light.ambient, light.directions, light.intensities)))
+        render(v, f, uv, tex, n, meta_light, CAM)
+    image, mask, _ = render(v[:0], f, uv, tex, n[:0], _no_lights(0), CAM)
+    assert image.shape == (0, 3, 48, 64) and mask.shape == (0, 1, 48, 64)
+
+
+def test_render_gradients_reach_every_input_but_the_mask():
+    """render's gradients, documented in its docstring: the image is differentiable with respect to the vertices,
+    normals, texture coordinates, texture, light and background; the mask is not."""
+    D = torch.float64
+    v, f, uv = _plane(dtype=D)
+    n = vertex_normals(v, f)
+    light = LightState(torch.tensor([0.4], dtype=D), torch.tensor([[[0.3, 0.0, -1.0]]], dtype=D),
+                       torch.tensor([[0.5]], dtype=D))  # fmt: skip
+    tex = torch.rand(3, 4, 4, dtype=D, generator=torch.Generator().manual_seed(0)) * 0.5
+    inputs = [x.clone().requires_grad_() for x in (v, n, uv, tex, light.ambient, light.directions, light.intensities,
+                                                   torch.rand(1, 3, 48, 64, dtype=D))]  # fmt: skip
+    vv, nn, uu, tt, amb, dirs, inten, bg = inputs
+    image, mask, frags = render(vv, f, uu, tt, nn, LightState(amb, dirs, inten), CAM, background=bg)
+    assert not mask.requires_grad and not frags.pix_to_face.requires_grad
+    weights = torch.rand(image.shape, dtype=D, generator=torch.Generator().manual_seed(1))
+    grads = torch.autograd.grad((image * weights).sum(), inputs)
+    for name, g in zip(("verts_cam", "normals_cam", "uv", "texture", "ambient", "directions", "intensities",
+                        "background"), grads):  # fmt: skip
+        assert torch.isfinite(g).all() and g.abs().sum() > 0, name

@@ -247,3 +247,22 @@ def test_points_visible_exceptions():
     for tolerance in (-0.1, float("inf"), float("nan")):  # (inf passed ">= 0")
         with pytest.raises(ValueError, match=r"^depth_tolerance must be a finite number >= 0 \(a fraction of"):
             points_visible(pts, ids, frag, CAM, depth_tolerance=tolerance)
+
+
+def test_points_visible_option_types_and_near():
+    """depth_tolerance="0.1" was "'<=' not supported between instances"; near was not looked at (a string was
+    "'>' not supported between instances of 'Tensor' and 'str'", a NaN near made every point invisible without a
+    word, a negative one let points behind the camera through the near test)."""
+    verts, faces, _ = sphere(30.0, (0.0, 0.0, 150.0), subdivisions=1)
+    frag = rasterize(verts, faces, CAM)
+    pts = centroids(verts, faces)
+    ids = torch.arange(faces.shape[0])
+    with pytest.raises(TypeError, match=r"^depth_tolerance must be a real number, got str"):
+        points_visible(pts, ids, frag, CAM, depth_tolerance="0.1")  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match=r"^near must be a real number, got str"):
+        points_visible(pts, ids, frag, CAM, near="1")  # type: ignore[arg-type]
+    for near in (float("nan"), -1.0, 0.0, float("inf")):
+        with pytest.raises(ValueError, match=r"^near must be a finite number > 0 \(millimetres\), got"):
+            points_visible(pts, ids, frag, CAM, near=near)
+    want = points_visible(pts, ids, frag, CAM)
+    assert want.any() and torch.equal(points_visible(pts, ids, frag, CAM, near=1, depth_tolerance=0), want)

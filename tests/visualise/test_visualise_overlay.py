@@ -331,3 +331,68 @@ def test_plot_track_into_a_folder_not_made_is_an_output_error_naming_the_plot(tm
     with pytest.raises(OutputError, match=r"folder\.png: cannot write the plot"):
         plot_track(cols, rows, tmp_path / "folder.png")
     assert not list(tmp_path.glob("*partial*"))
+
+
+def test_overlay_arguments_are_checked_by_name():
+    """overlay_geometry posed the mesh with its own matmul: a float64 pose of a float32 model was "expected scalar
+    type Double but found Float" (axes_geometry promoted it), an unbatched rotation an IndexError, a (3,)
+    translation a broadcast error. mesh_edges told a numpy array "must be an (F, 3) tensor, got (1, 3)" and truncated
+    float indices. draw_overlay told a tensor image "must be (H, W, 3) uint8, got torch.Size([H, W, 3]) torch.uint8",
+    met float edges or out-of-range ones with numpy's IndexError (a negative one wrapped), points that require grad
+    with "Can't call numpy() on Tensor that requires grad", and drew success="no" green."""
+    from torchface.visualise import axes_geometry
+
+    model = load_candide3()
+    intr = Intrinsics.default(160, 120)
+    shape, anim = torch.zeros(1, model.num_shape), torch.zeros(1, model.num_animation)
+    R, t = torch.eye(3)[None], torch.tensor([[0.0, 0.0, 500.0]])
+    verts, axes = overlay_geometry(model, shape, anim, R, t, intr)
+    verts64, axes64 = overlay_geometry(model, shape, anim, R.double(), t.double(), intr)
+    assert verts64.dtype == axes64.dtype == torch.float64
+    torch.testing.assert_close(verts64, verts.double(), rtol=0, atol=1e-4)
+    torch.testing.assert_close(axes64, axes_geometry(R.double(), t.double(), intr), rtol=0, atol=0)
+    with pytest.raises(ValueError, match=r"rotation must be \(B, 3, 3\), got shape \(3, 3\)"):
+        overlay_geometry(model, shape, anim, R[0], t, intr)
+    with pytest.raises(ValueError, match=r"translation must be \(B, 3\), got shape \(3,\)"):
+        overlay_geometry(model, shape, anim, R, t[0], intr)
+    with pytest.raises(ValueError, match=r"batch sizes of rotation \(2\) and translation \(3\) must match or be 1"):
+        overlay_geometry(model, shape, anim, R.expand(2, 3, 3), t.expand(3, 3), intr)
+    with pytest.raises(TypeError, match="rotation must be a torch.Tensor, got ndarray"):
+        axes_geometry(R.numpy(), t, intr)
+    with pytest.raises(TypeError, match=r"faces must be an integer torch.Tensor \(F, 3\), got ndarray"):
+        mesh_edges(model.faces.numpy())
+    with pytest.raises(TypeError, match="faces must be an integer torch.Tensor .* got dtype torch.float32"):
+        mesh_edges(model.faces.float())
+    img, edges = np.zeros((120, 160, 3), np.uint8), mesh_edges(model.faces)
+    with pytest.raises(TypeError, match=r"image_bgr must be a numpy array \(H, W, 3\) uint8, got Tensor \(a tensor: "):
+        draw_overlay(torch.from_numpy(img), verts[0], edges, axes[0], 0.9, True)
+    with pytest.raises(ValueError, match=r"edges must be \(E, 2\) integer vertex pairs .* float64"):
+        draw_overlay(img, verts[0], edges.astype(np.float64), axes[0], 0.9, True)
+    for bad in (np.array([[0, 113]]), np.array([[-1, 2]])):
+        with pytest.raises(ValueError, match=r"edges must index the 113 vertices of verts_px, got indices in"):
+            draw_overlay(img, verts[0], bad, axes[0], 0.9, True)
+    with pytest.raises(TypeError, match="success must be a bool, got str 'no'"):
+        draw_overlay(img, verts[0], edges, axes[0], 0.9, "no")  # type: ignore[arg-type]
+    want = draw_overlay(img, verts[0], edges, axes[0], 0.9, False)
+    tracked = verts[0].clone().requires_grad_()
+    assert np.array_equal(draw_overlay(img, tracked, edges, axes[0], 0.9, torch.tensor(False)), want)
+
+
+def test_au_groups_and_plot_track_refuse_rows_of_other_columns(tmp_path):
+    """Both read ``rows.reshape(-1, len(columns))``: a table of other columns, or a transposed one, was taken whenever
+    the sizes divided, and its values read under the wrong names (AUs of one unit told apart: two AU columns over a
+    3-column table grouped nothing). Now a ValueError saying the shape; one row as (C,) and none as [] still go."""
+    from torchface.visualise import au_groups
+
+    cols = ("AU23_r", "AU24_r", "AU26_r")
+    rows = np.array([[0.1, 0.1, 0.3], [0.2, 0.2, 0.0]])
+    assert au_groups(cols, rows) == [("AU23_r", "AU24_r"), ("AU26_r",)]
+    assert au_groups(cols, rows[0]) == [("AU23_r", "AU24_r"), ("AU26_r",)]
+    assert au_groups(cols, []) == [cols]  # (no values: every series the same)
+    with pytest.raises(ValueError, match=r"rows must be \(T, C\) with C = len\(columns\) = 2, got shape \(2, 3\)"):
+        au_groups(cols[:2], rows)
+    with pytest.raises(ValueError, match=r"rows must be \(T, C\) with C = len\(columns\) = 3, got shape \(3, 2\)"):
+        au_groups(cols, rows.T)
+    with pytest.raises(ValueError, match=r"rows must be \(T, C\) with C = len\(columns\) = 3, got shape \(3, 2\)"):
+        plot_track(cols, rows.T, tmp_path / "plot.png")
+    assert not (tmp_path / "plot.png").exists()

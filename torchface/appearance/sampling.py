@@ -7,6 +7,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from torchface._deterministic import grid_sample_border, reflect_pad
+from torchface.geometry._checks import check_int, check_tensor
 
 
 #: ITU-R BT.601 luma weights of R, G and B (kornia's ``rgb_to_grayscale`` defaults).
@@ -54,11 +55,23 @@ def pixels_to_grid(points_px: Tensor, height: int, width: int) -> Tensor:
     """Map pixel coordinates ``(u, v)`` to ``grid_sample``'s normalised coordinates (``align_corners=True``).
 
     Args:
-        points_px: ``(B, N, 2)`` pixel coordinates (column, row).
+        points_px: ``(B, N, 2)`` (or any ``(..., 2)``) float pixel coordinates (column, row).
+        height, width: the image's size in pixels, ints ``>= 1``.
 
     Returns:
         ``(B, N, 2)`` coordinates in ``[-1, 1]`` for points inside the image.
+
+    Raises:
+        TypeError: ``points_px`` is not a floating-point tensor, or a size is not an int.
+        ValueError: ``points_px`` does not end in 2 coordinates, or a size is below 1.
     """
+    check_tensor(points_px, "points_px", (2,))
+    height, width = check_int(height, "height", 1), check_int(width, "width", 1)
+    return _pixels_to_grid(points_px, height, width)
+
+
+def _pixels_to_grid(points_px: Tensor, height: int, width: int) -> Tensor:
+    """:func:`pixels_to_grid` without its checks (:func:`sample_at_pixels`' size is its images')."""
     scale = points_px.new_tensor([2.0 / max(width - 1, 1), 2.0 / max(height - 1, 1)])
     return points_px * scale - 1.0
 
@@ -78,6 +91,12 @@ def sample_at_pixels(images: Tensor, points_px: Tensor) -> tuple[Tensor, Tensor]
 
     Differentiable with respect to ``images`` and ``points_px``.
     """
+    for name, x in (("images", images), ("points_px", points_px)):
+        if not isinstance(x, Tensor) or not x.is_floating_point():  # (a numpy array: "no attribute 'dim'"; uint8
+            # images: grid_sample's "not implemented for 'Byte'")
+            got = f"dtype {x.dtype}" if isinstance(x, Tensor) else type(x).__name__
+            hint = " (uint8 frames: images.float() / 255)" if isinstance(x, Tensor) and x.dtype == torch.uint8 else ""
+            raise TypeError(f"{name} must be a floating-point torch.Tensor, got {got}{hint}")
     if images.dim() != 4:
         raise ValueError(f"images must be (B, C, H, W), got {tuple(images.shape)}")
     if points_px.dim() != 3 or points_px.shape[-1] != 2 or points_px.shape[0] != images.shape[0]:
@@ -87,7 +106,7 @@ def sample_at_pixels(images: Tensor, points_px: Tensor) -> tuple[Tensor, Tensor]
     # grid_sample's CPU backward with border padding crashes the process on a NaN grid point (PyTorch bug):
     # non-finite points go to pixel (0, 0), a torch.where so that their gradient is 0, not NaN.
     points_px = torch.where(finite, points_px, 0.0)
-    grid = pixels_to_grid(points_px, h, w).unsqueeze(1)  # (B, 1, N, 2)
+    grid = _pixels_to_grid(points_px, h, w).unsqueeze(1)  # (B, 1, N, 2)
     values = grid_sample_border(images, grid.to(images.dtype))
     u, v = points_px[..., 0], points_px[..., 1]
     inside = (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1) & finite.squeeze(-1)
@@ -110,6 +129,9 @@ def image_with_gradients(gray: Tensor) -> Tensor:
         raise TypeError(f"gray must be a torch.Tensor (B, 1, H, W), got {type(gray).__name__}")
     if gray.dim() != 4 or gray.shape[1] != 1 or gray.shape[-1] < 2 or gray.shape[-2] < 2:
         raise ValueError(f"gray must be (B, 1, H, W) with H, W >= 2, got {tuple(gray.shape)}")
+    if not gray.is_floating_point():  # (uint8, as to_gray gives of uint8 RGB: "result type Float can't be cast to
+        # the desired output type Byte" from the halving)
+        raise TypeError(f"gray must be a floating-point tensor, got dtype {gray.dtype} (uint8 images: .float() / 255)")
     if gray.requires_grad:  # the differentiable path: plain out-of-place ops
         p = F.pad(gray, (1, 1, 1, 1), mode="replicate")
         gu = 0.5 * (p[:, :, 1:-1, 2:] - p[:, :, 1:-1, :-2])

@@ -390,6 +390,15 @@ def check_batch(b1: int, b2: int, name1: str, name2: str) -> None:
         raise ValueError(f"batch sizes of {name1} ({b1}) and {name2} ({b2}) must match or be 1")
 
 
+def check_batches(*named: tuple[str, int]) -> None:
+    """:func:`check_batch` of every pair of ``(name, batch size)``: three or more batched arguments broadcast only
+    if all sizes other than 1 agree (pairs checked against one argument alone let ``R (1)``, ``t (2)``,
+    ``points (3)`` through to torch's "The size of tensor a (3) must match the size of tensor b (2)")."""
+    for i, (name1, b1) in enumerate(named):
+        for name2, b2 in named[i + 1 :]:
+            check_batch(b1, b2, name1, name2)
+
+
 def promoted(*tensors: torch.Tensor) -> tuple[torch.Tensor, ...]:
     """``tensors`` in their promoted dtype (float32 against float64: float64), as torch's elementwise operations
     promote; a matmul of mixed dtypes raised "expected scalar type Float but found Double"."""

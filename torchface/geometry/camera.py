@@ -10,6 +10,8 @@ from typing import Any, cast
 import numpy as np
 import torch
 
+from torchface._device import check_device
+
 
 @dataclass(frozen=True)
 class Intrinsics:
@@ -151,7 +153,13 @@ class Intrinsics:
         return (self.height, self.width)
 
     def matrix(self, dtype: torch.dtype = torch.float32, device: torch.device | str | None = None) -> torch.Tensor:
-        """The 3x3 calibration matrix ``K`` (differentiable in the entries that are tensors)."""
+        """The 3x3 calibration matrix ``K`` (differentiable in the entries that are tensors).
+
+        Raises:
+            ValueError: ``device`` is not a device this machine has (``check_device``'s rule: torch's "Invalid
+                device string" for a misspelt one, a matrix without values for ``"meta"``).
+        """
+        device = check_device(device)
         entries = (self.fx, self.cx, self.fy, self.cy)
         if any(isinstance(v, torch.Tensor) for v in entries):  # torch.tensor() would copy them without their graph
             fx, cx, fy, cy = (torch.as_tensor(v, dtype=dtype, device=device).reshape(()) for v in entries)

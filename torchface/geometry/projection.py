@@ -11,10 +11,14 @@ near plane (``Z <= NEAR_PLANE_MM``) have no meaningful projection; callers mask 
 
 from __future__ import annotations
 
+import math
+
 import torch
 
 from torchface.conventions import NEAR_PLANE_MM
-from torchface.geometry._checks import check_batch, check_exact_dim, check_intrinsics, check_tensor, promoted
+from torchface.geometry._checks import (
+    check_batch, check_batches, check_exact_dim, check_intrinsics, check_number, check_tensor, promoted,
+)
 from torchface.geometry.camera import Intrinsics
 from torchface.geometry.so3 import axis_angle_to_matrix, hat, rotate_points_jacobian
 from torchface.geometry.transforms import transform_points
@@ -44,16 +48,22 @@ def in_front(points_cam: torch.Tensor, near: float = NEAR_PLANE_MM) -> torch.Ten
 
     Args:
         points_cam: ``(B, N, 3)`` points in the camera frame (millimetres).
-        near: near-plane depth in millimetres.
+        near: near-plane depth in millimetres, a finite number > 0 (as the rasterizer's).
 
     Returns:
         ``(B, N)`` bool, ``Z > near``.
+
+    Raises:
+        TypeError: ``near`` is not a real number (a string was torch's "'>' not supported").
+        ValueError: ``near`` is not finite and > 0 (NaN made every point "behind" without a word).
 
     Example:
         >>> in_front(torch.tensor([[[0.0, 0.0, 500.0], [0.0, 0.0, -5.0]]]))
         tensor([[ True, False]])
     """
     _check_points_cam(points_cam)
+    if type(near) is not float or not 0 < near < math.inf:  # (the default's: no parse of the interval)
+        near = check_number(near, "near", "(0, inf)", unit="millimetres")
     return points_cam[..., 2] > near
 
 
@@ -149,7 +159,7 @@ def pose_projection_jacobian(
     check_tensor(points_model, "points_model", (3,))
     check_exact_dim(points_model, "points_model", (2, 3), "(B, N, 3) or (N, 3)")
     if points_model.dim() == 3:  # (named here: transform_points' message named its R)
-        check_batch(aa.shape[0], points_model.shape[0], "aa", "points_model")
+        check_batches(("aa", aa.shape[0]), ("t", t.shape[0]), ("points_model", points_model.shape[0]))
     cam = check_intrinsics(intrinsics)
     aa, t, points_model = promoted(aa, t, points_model)
     R = axis_angle_to_matrix(aa)

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import torch
 
-from torchface.geometry._checks import check_batch, check_broadcast, check_exact_dim, check_tensor, promoted
+from torchface.geometry._checks import check_batches, check_broadcast, check_exact_dim, check_tensor, promoted
 
 __all__ = ["transform_points", "compose", "invert", "relative_rotation"]
 
@@ -18,7 +18,7 @@ def _check_pose(R: torch.Tensor, t: torch.Tensor, r_name: str = "R", t_name: str
     check_exact_dim(R, r_name, (3,), "(B, 3, 3)")
     check_tensor(t, t_name, (3,))
     check_exact_dim(t, t_name, (2,), "(B, 3)")
-    check_batch(R.shape[0], t.shape[0], r_name, t_name)
+    check_batches((r_name, R.shape[0]), (t_name, t.shape[0]))
 
 
 def transform_points(R: torch.Tensor, t: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
@@ -42,7 +42,7 @@ def transform_points(R: torch.Tensor, t: torch.Tensor, points: torch.Tensor) -> 
     check_tensor(points, "points", (3,))
     check_exact_dim(points, "points", (2, 3), "(B, N, 3) or (N, 3)")
     pts = points if points.dim() == 3 else points.unsqueeze(0)
-    check_batch(R.shape[0], pts.shape[0], "R", "points")
+    check_batches(("R", R.shape[0]), ("t", t.shape[0]), ("points", pts.shape[0]))
     R, t, pts = promoted(R, t, pts)
     return pts @ R.transpose(-1, -2) + t[:, None, :]
 
@@ -69,7 +69,7 @@ def compose(
     """
     _check_pose(R1, t1, "R1", "t1")
     _check_pose(R2, t2, "R2", "t2")
-    check_batch(R1.shape[0], R2.shape[0], "R1", "R2")
+    check_batches(("R1", R1.shape[0]), ("t1", t1.shape[0]), ("R2", R2.shape[0]), ("t2", t2.shape[0]))
     R1, t1, R2, t2 = promoted(R1, t1, R2, t2)
     R = R1 @ R2
     t = (R1 @ t2[..., None]).squeeze(-1) + t1

@@ -407,6 +407,12 @@ def _face_crop(verts_cam: Tensor, used: Tensor, intrinsics: Intrinsics) -> Intri
     )
 
 
+def _check_flags(zbuffer: object, check_values: object) -> tuple[bool, bool]:
+    """``zbuffer`` and ``check_values`` as bools (check_bool: ``zbuffer="no"`` was taken as true, and
+    ``check_values="no"`` too, where ``0`` skipped the frames' check)."""
+    return check_bool(zbuffer, "zbuffer"), check_bool(check_values, "check_values")
+
+
 @full_precision
 def normalised_face(
     frames: Tensor,
@@ -479,6 +485,7 @@ def normalised_face(
     if not isinstance(layout, NormalisedFaceLayout):
         raise TypeError(f"layout must be a NormalisedFaceLayout, got {type(layout).__name__}")
     _check_precision(model)
+    zbuffer, check_values = _check_flags(zbuffer, check_values)
     if not isinstance(intrinsics, Intrinsics):
         raise TypeError(f"intrinsics must be an Intrinsics, got {type(intrinsics).__name__}")
     if not isinstance(frames, Tensor):
@@ -581,6 +588,7 @@ def normalised_face_posed(
             :func:`normalised_face`).
     """
     _check_precision(model)
+    zbuffer, check_values = _check_flags(zbuffer, check_values)
     if not isinstance(frames, Tensor):  # (a numpy array's message named its shape, the right one, as the wrong one)
         raise TypeError(f"frames must be a torch.Tensor (B, C, H, W), got {type(frames).__name__}"
                         f"{_not_tensor_hint(frames)}")  # fmt: skip

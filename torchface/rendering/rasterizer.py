@@ -71,6 +71,7 @@ from torchface._compiling import host_values, is_compiling, is_transformed
 from torchface._scalar import isfinite
 from torchface.backend import Backend, use_native
 from torchface.conventions import NEAR_PLANE_MM
+from torchface.geometry._checks import check_bool, check_number
 from torchface.geometry.camera import Intrinsics
 
 #: A caller's memory for the native z-buffer's outputs: ``scratch(name, shape, dtype)`` returns a contiguous CPU tensor
@@ -214,6 +215,17 @@ class Coverage:
             zbuf=zbuf.reshape(B, H, W),
             facing=self.facing.reshape(B, H, W),
         )
+
+
+def _check_options(intrinsics: object, cull_backfaces: object, near: object) -> tuple[bool, float]:
+    """The rasterizers' ``cull_backfaces`` (a bool: ``"no"`` was taken as true, and culled) and ``near`` (a finite
+    number > 0 in millimetres: inf passed "> 0", every triangle cut, an empty coverage; a string or None was "'<' not
+    supported between instances"), after a ``TypeError`` for ``intrinsics`` that are not an :class:`Intrinsics`."""
+    if not isinstance(intrinsics, Intrinsics):
+        raise TypeError(f"intrinsics must be an Intrinsics, got {type(intrinsics).__name__}")
+    if type(near) is not float or not 0 < near < math.inf:  # (the default's: no parse of the interval)
+        near = check_number(near, "near", "(0, inf)", unit="millimetres")
+    return check_bool(cull_backfaces, "cull_backfaces"), near
 
 
 def _check_mesh(verts: Tensor, faces: Tensor, name: str = "verts") -> None:
@@ -650,10 +662,7 @@ def _cover(
     (without ``pixels``): :func:`_cover_windows`' list of coverages instead. ``scratch`` (without ``pixels`` and
     ``windows``): the native kernel's memory (:data:`Scratch`; the torch code makes new tensors)."""
     _check_mesh(verts_cam, faces, "verts_cam")
-    if not isinstance(intrinsics, Intrinsics):
-        raise TypeError(f"intrinsics must be an Intrinsics, got {type(intrinsics).__name__}")
-    if not 0 < near < math.inf:  # (inf passed "> 0": every triangle cut, an empty coverage; check_number's words)
-        raise ValueError(f"near must be a finite number > 0 (millimetres), got {near}")
+    cull_backfaces, near = _check_options(intrinsics, cull_backfaces, near)
     B, F = verts_cam.shape[0], faces.shape[0]
     H, W = intrinsics.height, intrinsics.width
     device, dtype = verts_cam.device, verts_cam.dtype

@@ -20,7 +20,7 @@ from torch import Tensor
 
 from torchface.conventions import NEAR_PLANE_MM
 from torchface.geometry.camera import Intrinsics
-from torchface.rendering.rasterizer import _DEGENERATE_EPS_FACTOR, Fragments, _check_mesh
+from torchface.rendering.rasterizer import _DEGENERATE_EPS_FACTOR, Fragments, _check_mesh, _check_options
 
 __all__ = ["rasterize_reference"]
 
@@ -107,6 +107,7 @@ def rasterize_reference(
         0
     """
     _check_mesh(verts_cam, faces, "verts_cam")
+    cull_backfaces, near = _check_options(intrinsics, cull_backfaces, near)
     eps = torch.finfo(verts_cam.dtype).eps * _DEGENERATE_EPS_FACTOR
     verts = verts_cam.detach().cpu().to(torch.float64).numpy()
     tris = faces.detach().cpu().long().numpy()

@@ -30,6 +30,7 @@ are exactly those outer texel edges: ``x_norm = 2 u - 1``, ``y_norm = 2 v - 1``.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -38,6 +39,7 @@ import torch.nn.functional as nnf
 from torch import Tensor, nn
 
 from torchface._device import tensor_mover
+from torchface.geometry._checks import check_bool, check_intrinsics
 from torchface.geometry.camera import Intrinsics
 from torchface.rendering.rasterizer import Fragments, rasterize
 
@@ -291,7 +293,7 @@ def lambertian_irradiance(normals: Tensor, light: LightState) -> Tensor:
         )
     b = normals.shape[0]
     middle = normals.shape[1:-1]
-    n = normals.reshape(b, -1, 3)
+    n = normals.reshape(b, math.prod(middle), 3)  # (not -1: B = 0 has no size to infer)
     dirs = light.directions.to(n)
     eps = torch.finfo(n.dtype).eps
     dirs = dirs / dirs.norm(dim=-1, keepdim=True).clamp(min=eps)
@@ -363,7 +365,25 @@ def render(
         cull_backfaces: passed to the rasterizer.
 
     Returns:
-        :class:`RenderResult` ``(image (B, 3, H, W), mask (B, 1, H, W), fragments)``.
+        :class:`RenderResult` ``(image (B, 3, H, W), mask (B, 1, H, W), fragments)``, on ``verts_cam``'s device,
+        ``image`` and ``mask`` in ``normals_cam``'s dtype.
+
+    Raises:
+        TypeError: an argument of the wrong type (a numpy array, a uint8 texture: ``.float() / 255``, a
+            ``cull_backfaces`` that is not a bool).
+        ValueError: a shape that does not match ``verts_cam``'s ``B`` and ``V`` or the camera's size, or a tensor on
+            another device than ``verts_cam``'s.
+
+    Gradients: ``image`` is differentiable with respect to ``verts_cam`` (through the covered pixels' barycentric
+    coordinates, as :func:`~torchface.rendering.rasterizer.rasterize`'s ``bary``: not through which triangle a pixel
+    sees, so not at silhouettes and occlusion edges), ``normals_cam``, ``uv``, ``texture``, the light's tensors and
+    ``background``; ``mask`` and the fragments' ``pix_to_face`` and ``facing`` carry none. An input that requires
+    grad makes the image hold its graph: render under ``torch.no_grad()`` where no gradient is wanted.
+
+    Devices: there is no ``device=`` argument, as for every function of :mod:`torchface.geometry`,
+    :mod:`torchface.appearance` and :mod:`torchface.rendering`: it computes where its inputs are (``device=`` is for
+    what makes tensors from nothing, ``load_candide3(device=...)``). Move them together (``TexturedMesh.to``,
+    ``LightState.to``).
 
     Example:
         >>> # image, mask, frags = render(verts_cam, faces, uv, tex, normals_cam, light, Intrinsics.default(64, 48))
@@ -374,10 +394,34 @@ def render(
         raise ValueError(
             f"normals_cam must match verts_cam {tuple(verts_cam.shape)}, got {tuple(normals_cam.shape)}"
         )
-    b = verts_cam.shape[0]
+    b, v = verts_cam.shape[:2]
+    if not isinstance(light, LightState):
+        raise TypeError(f"light must be a LightState, got {type(light).__name__}")
     if light.batch_size != b:
         raise ValueError(f"light batch size must be B={b}, got {light.batch_size}")
-    h, w = intrinsics.height, intrinsics.width
+    h, w = check_intrinsics(intrinsics).height, intrinsics.width
+    cull_backfaces = check_bool(cull_backfaces, "cull_backfaces")  # ("no" was taken as true, and culled)
+    # (uv: torch.cat's "Sizes of tensors must match", or a (V, 3) told as normals (B, H, W, 4); a numpy uv or texture
+    # "no attribute 'to'"; a uint8 texture taken as 0-255 albedo, every pixel clamped to white)
+    for name, x in (("uv", uv), ("texture", texture)):
+        if not isinstance(x, Tensor):
+            raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
+    if uv.ndim not in (2, 3) or uv.shape[-2:] != (v, 2) or uv.ndim == 3 and uv.shape[0] != b:
+        raise ValueError(f"uv must be (V, 2) or (B, V, 2) with V={v} and B={b} like verts_cam, got {tuple(uv.shape)}")
+    if texture.ndim not in (3, 4):
+        raise ValueError(f"texture must be (3, Ht, Wt) or (B, 3, Ht, Wt), got {tuple(texture.shape)}")
+    tensors: tuple[tuple[str, Tensor | None], ...] = (
+        ("verts_cam", verts_cam), ("normals_cam", normals_cam), ("uv", uv), ("texture", texture),
+        ("background", background),
+    )  # fmt: skip
+    for name, value in tensors:
+        if value is not None and not value.is_floating_point():
+            hint = " (uint8: .float() / 255)" if value.dtype == torch.uint8 else ""
+            raise TypeError(f"{name} must be a floating-point tensor, got {value.dtype}{hint}")
+    for name, value in (*tensors[1:], ("light", light.ambient)):
+        if value is not None and value.device != verts_cam.device:  # (torch's "Expected all tensors to be on the
+            # same device")
+            raise ValueError(f"{name} must be on verts_cam's device {verts_cam.device}, got {value.device}")
     if background is not None:
         _check_tensor("background", background, 4)
         if background.shape[1:] != (3, h, w) or background.shape[0] not in (1, b):

@@ -17,6 +17,7 @@ from torchface import _native
 from torchface.backend import Backend, use_native
 from torchface.conventions import NEAR_PLANE_MM
 from torchface.geometry import mesh
+from torchface.geometry._checks import check_number
 from torchface.geometry.camera import Intrinsics
 from torchface.rendering.rasterizer import Coverage, Fragments, _check_mesh, _triangles
 
@@ -167,9 +168,11 @@ def points_visible(
             f"fragments must be (B, H, W) = ({B}, {H}, {W}) to match points_cam and intrinsics, "
             f"got {tuple(fragments.pix_to_face.shape)}"
         )
-    if not 0 <= depth_tolerance < math.inf:  # (inf passed ">= 0", as normalised_face's: check_number's words)
-        raise ValueError(f"depth_tolerance must be a finite number >= 0 (a fraction of the depth), got "
-                         f"{depth_tolerance}")
+    if type(depth_tolerance) is not float or not 0 <= depth_tolerance < math.inf:  # (inf passed ">= 0"; a string
+        # was "'<=' not supported between instances")
+        depth_tolerance = check_number(depth_tolerance, "depth_tolerance", "[0, inf)", unit="a fraction of the depth")
+    if type(near) is not float or not 0 < near < math.inf:  # (NaN: no point visible, without a word)
+        near = check_number(near, "near", "(0, inf)", unit="millimetres")
 
     pts = points_cam.detach()
     if isinstance(fragments, Coverage):

@@ -101,6 +101,18 @@ def _fits(fig: Figure, axes: list[Axes], title: Text | None, renderer: RendererB
     return all(b.x0 >= 0 and b.x1 <= W and b.y0 >= 0 and b.y1 <= top for b, top in boxes)
 
 
+def _table(columns: tuple[str, ...], rows: object) -> np.ndarray:
+    """``rows`` as a float64 ``(T, C)`` array with ``C = len(columns)`` (one row may come as ``(C,)``), or a
+    ``ValueError``: a reshape to ``(-1, C)`` took a table of other columns or a transposed one whenever the sizes
+    divided, and read its values under the wrong names (linked AUs told apart, others joined)."""
+    table = np.asarray(rows, dtype=np.float64)
+    if table.ndim == 1 and table.shape[0] in (0, len(columns)):  # (one row, or none: [])
+        return table.reshape(-1, len(columns))
+    if table.ndim != 2 or table.shape[1] != len(columns):
+        raise ValueError(f"rows must be (T, C) with C = len(columns) = {len(columns)}, got shape {table.shape}")
+    return table
+
+
 def au_groups(columns: tuple[str, ...], rows: np.ndarray) -> list[tuple[str, ...]]:
     """The ``AUxx_r`` columns of a track table, those holding the same values joined: one animation unit links
     several AUs, whose columns repeat its value (CANDIDE-3: ``AU13_r`` = ``AU15_r``, ``AU42_r`` ... ``AU45_r``).
@@ -115,7 +127,7 @@ def au_groups(columns: tuple[str, ...], rows: np.ndarray) -> list[tuple[str, ...
         >>> au_groups(("AU23_r", "AU24_r", "AU26_r"), np.array([[0.1, 0.1, 0.3], [0.2, 0.2, 0.0]]))
         [('AU23_r', 'AU24_r'), ('AU26_r',)]
     """
-    rows = np.asarray(rows, dtype=np.float64).reshape(-1, len(columns))
+    rows = _table(columns, rows)
     groups: list[list[int]] = []
     for i, c in enumerate(columns):
         if not (c.startswith("AU") and c.endswith("_r")):
@@ -150,7 +162,7 @@ def plot_track(
     """
     columns = name_tuple(columns, "columns")
     num_aus = check_int(num_aus, "num_aus", 0)  # (-1 showed all AUs but one)
-    rows = np.asarray(rows, dtype=np.float64).reshape(-1, len(columns))
+    rows = _table(columns, rows)
     idx = {c: i for i, c in enumerate(columns)}
     for need in ("timestamp", "yaw_deg", "pitch_deg", "roll_deg", "confidence", "success"):
         if need not in idx:
