@@ -241,7 +241,7 @@ def _check_mesh(verts: Tensor, faces: Tensor, name: str = "verts") -> None:
     if faces.dtype not in (torch.int32, torch.int64):
         raise TypeError(f"faces must be int32 or int64, got {faces.dtype}")
     if faces.device != verts.device:
-        raise ValueError(f"faces must be on {name}' device {verts.device}, got {faces.device}")
+        raise ValueError(f"faces must be on the device of {name}, {verts.device}, got {faces.device}")
     if faces.numel():
         lo, hi = _index_range(faces)
         if lo < 0 or hi >= verts.shape[1]:
