@@ -795,3 +795,35 @@ def test_a_stream_may_take_gray_and_rgb_frames_at_its_online_start():
         assert all(bool(r.success) for r in results)
         for r, s in zip(results, same):
             assert float(geodesic_angle_deg(r.rotation, s.rotation)) < 0.05
+
+
+@pytest.mark.parametrize("dtype", [torch.bfloat16, torch.float16])
+def test_half_precision_landmarks_are_warned_of_once_per_call_and_fitted_as_given(clip, dtype):
+    """Landmarks in bfloat16 (a network's under ``torch.autocast``) or float16 are rounded to their few significant
+    bits (bfloat16: 0.5 px steps from 64 px, 1 px from 128, 2 px from 256) before torchface sees them, and were fitted
+    1-2 px off without a word by ``initialise``, the landmark fit and the look-ahead. Each warns, once per call
+    (``FaceTracker.initialise`` checks them in several places), saying to pass float32, and fits them as given: the
+    result is that of their exact float32 values. float32 landmarks are not warned of."""
+    from torchface.geometry import Intrinsics
+    from torchface.tracker import fit_landmarks, initialise
+
+    frames, lm = clip
+    half = lm[None].to(dtype)
+    assert not torch.equal(half.float(), lm[None])  # (rounded: the clip's points are not all on its grid)
+    said = rf"^landmarks_px are {re.escape(str(dtype))}, which rounds pixel coordinates to steps of 0\.5 px from "
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        got = FaceTracker(CFG, refine_first=None).initialise(frames[:1], half)
+    assert len(caught) == 1 and re.match(said, str(caught[0].message)), [str(w.message) for w in caught]
+    assert "pass float32 landmarks" in str(caught[0].message)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # (float32: not warned of)
+        want = FaceTracker(CFG, refine_first=None).initialise(frames[:1], half.float())
+    assert torch.equal(got.rotation, want.rotation) and torch.equal(got.translation, want.translation)
+    model = FaceTracker(CFG).model
+    for call in (lambda: fit_landmarks(model, half, Intrinsics.default(W, H)),
+                 lambda: initialise(model, CFG, frames[:1], half, Intrinsics.default(W, H))):  # fmt: skip
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            call()
+        assert len(caught) == 1 and re.match(said, str(caught[0].message))

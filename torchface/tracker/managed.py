@@ -113,6 +113,7 @@ from torchface.template.points import (
 )
 from torchface.tracker.fit import (
     LandmarkFit, fit_landmarks, landmark_rows_problem, landmarks_inside_fraction, normalised_streams,
+    widen_half_landmarks,
 )
 from torchface.tracker.inference import without_autograd
 from torchface.tracker.lookahead import (
@@ -357,6 +358,7 @@ def initialise_managed(
         >>> state, first = initialise_managed(model, TrackerConfig(), frames, lm, cam)  # doctest: +SKIP
         >>> state, result = managed_step(model, TrackerConfig(), state, next_frames)    # doctest: +SKIP
     """
+    landmarks_px = widen_half_landmarks(landmarks_px)  # (float16 / bfloat16: warned of once, here)
     check_api_types(model, config)
     check_refine_first(refine_first)
     if refine_first is not None:
