@@ -4131,6 +4131,23 @@ def test_a_landmarks_files_point_just_outside_the_frame_is_tracked_as_the_python
     assert "a point the frame does not show is given as missing (empty cells or nan)" in err, err
 
 
+def test_a_float_clips_frames_divided_by_255_twice_are_told_where_the_face_is_lost(clip, tmp_path, capsys):
+    """A float ``.npy`` clip whose later frames were divided by 255 twice (values in [0, 1/255], which the clip's
+    value check takes) lost the face at them without a word, as at black frames. Its warning is one line of the
+    command line's own (``torchface: warning: ...``), asking whether the frames were divided by 255 twice."""
+    video, lm, _ = clip
+    frames = _clip_frames_uint8(video, 4).astype(np.float32) / 255
+    frames[2:] /= 255
+    np.save(tmp_path / "a.npy", frames)
+    rc = main(["track", str(tmp_path / "a.npy"), "--landmarks", str(lm), "--out", str(tmp_path / "out"), "--quiet",
+               "--no-online-refine"])  # fmt: skip
+    err = capsys.readouterr().err
+    assert rc == 0, err
+    said = [line for line in err.splitlines() if "divided by 255 twice" in line]
+    assert len(said) == 1 and said[0].startswith("torchface: warning: stream 0 is lost at this frame: its frame's "
+                                                 "values reach 0.00"), err  # fmt: skip
+
+
 def test_a_detector_is_asked_near_the_given_points_of_a_landmarks_file_with_missing_ones(tmp_path, monkeypatch):
     """A re-detection before the first confident frame asks a detector that takes ``near`` (torchface.detect.Detector:
     ``(N, 2)`` pixel points of the face wanted) near the first frame's landmarks: a file's missing points reached it

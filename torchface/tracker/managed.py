@@ -56,6 +56,7 @@ import sys
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, fields, replace
+from types import FrameType
 from typing import Any, cast
 
 import torch
@@ -1588,11 +1589,16 @@ def _warn_divided_twice(frames: Tensor, template: Template, lost: Tensor) -> Non
 
 def _caller_stacklevel() -> int:
     """The ``stacklevel`` of a warning issued by the function that calls this that names the first frame outside
-    torchface and torch: the caller's line that stepped the tracker (``tracker(frames)``, ``managed_step``), however
-    many wrappers (the module's call, :func:`~torchface._autocast.full_precision`, inference mode) lie between."""
-    inside = (os.path.dirname(os.path.dirname(os.path.abspath(__file__))), os.path.dirname(torch.__file__))
-    frame, level = sys._getframe(1), 1
-    while frame is not None and frame.f_code.co_filename.startswith(inside):
+    torchface's tracker (:mod:`torchface.tracker`, :mod:`torchface._autocast`) and torch: the caller's line that
+    stepped the tracker (``tracker(frames)``, ``managed_step``; ``torchface track``'s job, whose warnings the command
+    line prints as its own), however many wrappers (the module's call, :func:`~torchface._autocast.full_precision`,
+    inference mode) lie between."""
+    here = os.path.dirname(os.path.abspath(__file__))
+    inside = (here + os.sep, os.path.join(os.path.dirname(here), "_autocast.py"),
+              os.path.dirname(os.path.abspath(torch.__file__)) + os.sep)  # fmt: skip
+    frame: FrameType | None = sys._getframe(1)
+    level = 1
+    while frame is not None and os.path.abspath(frame.f_code.co_filename).startswith(inside):
         frame, level = frame.f_back, level + 1
     return level
 
