@@ -150,7 +150,7 @@ def divided_twice_hint(frame: Tensor, start_hi: float) -> str:
     Example:
         >>> frame = torch.linspace(0.1, 0.9, 12).reshape(1, 3, 4)
         >>> divided_twice_hint(frame / 255, 0.8)  # doctest: +ELLIPSIS
-        "its frame's values reach 0.00353, about 227 times less than its face's first (0.8): divided by 255 twice? ..."
+        "its frame's values reach 0.00353, about 227 times less than its face's when it started (up to 0.8): ..."
     """
     seen = frame.detach()
     seen = seen[torch.isfinite(seen)]
@@ -164,5 +164,5 @@ def divided_twice_hint(frame: Tensor, start_hi: float) -> str:
     levels = seen.double() * 255.0
     if bool(((levels - levels.round()).abs() < 1e-3).all()):  # (8-bit values: a black frame's)
         return ""
-    return (f"its frame's values reach {hi:.3g}, about {start_hi / hi:.0f} times less than its face's first "
-            f"({start_hi:.3g}): divided by 255 twice? Frames are float in [0, 1], 8-bit ones divided by 255 once")
+    return (f"its frame's values reach {hi:.3g}, about {start_hi / hi:.0f} times less than its face's when it started "
+            f"(up to {start_hi:.3g}): divided by 255 twice? Frames are float in [0, 1], 8-bit ones divided by 255 once")

@@ -833,9 +833,9 @@ def test_half_precision_landmarks_are_warned_of_once_per_call_and_fitted_as_give
 def test_a_frame_divided_by_255_twice_mid_stream_is_told_where_its_stream_is_lost(clip):
     """A frame divided by 255 twice (a preprocessing bug: values in [0, 1 / 255], inside the range the steps check)
     made the stream LOST without a word, as a black frame does. Where a stream is lost at such a frame, a warning
-    (naming the caller's line) says that its values are about 255 times less than its face's first and asks whether
-    it was divided by 255 twice. A black frame, an 8-bit black frame (values multiples of 1/255), a dark frame and a
-    frame like the others are not told so; the tracking is the same with or without the warning."""
+    (naming the caller's line) says that its values are about 255 times less than its face's when it started and asks
+    whether it was divided by 255 twice. A black frame, an 8-bit black frame (values multiples of 1/255), a dark
+    frame and a frame like the others are not told so; the tracking is the same with or without the warning."""
     frames, lm = clip
     tracker = FaceTracker(CFG, refine_first=None)
     tracker.initialise(frames[:1], lm[None])
@@ -854,7 +854,7 @@ def test_a_frame_divided_by_255_twice_mid_stream_is_told_where_its_stream_is_los
     said = [w for w in caught if "divided by 255 twice" in str(w.message)]
     assert len(said) == 1 and said[0].filename == __file__, [str(w.message) for w in caught]
     assert re.match(r"^stream 0 is lost at this frame: its frame's values reach 0\.00\d+, about \d+ times less than "
-                    r"its face's first \(0\.\d+\): divided by 255 twice\? Frames are float in \[0, 1\], 8-bit ones "
+                    r"its face's when it started \(up to 0\.\d+\): divided by 255 twice\? Frames are float in \[0, 1\], 8-bit ones "
                     r"divided by 255 once$", str(said[0].message)), str(said[0].message)  # fmt: skip
     with warnings.catch_warnings(record=True) as caught:  # (lost already: said once, at the loss)
         warnings.simplefilter("always")
