@@ -17,8 +17,8 @@ from torch import Tensor
 from torchface._compiling import host_values
 
 __all__ = [
-    "FRAME_VALUE_RANGE", "STEP_VALUE_ROW_STRIDE", "TENSOR_CLIP", "ValueScale", "check_frame_values", "value_scale",
-    "value_scale_hint",
+    "FRAME_VALUE_RANGE", "STEP_VALUE_ROW_STRIDE", "TENSOR_CLIP", "ValueScale", "check_frame_values",
+    "divided_twice_hint", "value_scale", "value_scale_hint",
 ]
 
 #: :func:`~torchface.tracker.step.check_frames` with ``values=True`` refuses frames with values outside this interval:
@@ -130,3 +130,39 @@ def _values_refused(seen: Tensor, lo: float, hi: float) -> str:
     lo, hi = host_values(torch.stack([seen.where(finite, math.inf).amin(), seen.where(finite, -math.inf).amax()]))
     below_zero, count = host_values(torch.stack([(seen < 0.0).logical_and(finite).sum(), finite.sum()]))
     return f"values from {lo:.4g} to {hi:.4g}{value_scale_hint(value_scale(lo, hi, below_zero, count), TENSOR_CLIP)}"
+
+
+#: :func:`divided_twice_hint` says that a frame looks divided by 255 twice where its face started at least this many
+#: times brighter than the frame's brightest value (255 for the same light: a face's brightest template point is
+#: darker than a bright background's, down to 255 / 8 for a face at a quarter of the background's brightness).
+DIVIDED_TWICE_MIN_RATIO: float = 255.0 / 8.0
+
+
+def divided_twice_hint(frame: Tensor, start_hi: float) -> str:
+    """What is said of a ``(C, H, W)`` float frame at which a stream was lost, where it looks divided by 255 twice (a
+    preprocessing bug: values in [0, 1 / 255], which :func:`check_frame_values` takes, and the stream was LOST
+    without a word, as at a black frame): its finite values reach at most ``FRAME_VALUE_RANGE[1] / 255``, above 0,
+    and at least :data:`DIVIDED_TWICE_MIN_RATIO` times less than ``start_hi`` (the brightest value the stream's face
+    started with, at most 8 * 255 times more), and are not all multiples of 1/255 (an 8-bit black frame, a fade's,
+    whose brightest is 1/255, is a black frame). ``""`` otherwise. Read on a loss only: a second look at the frame
+    that the steps' check (:data:`STEP_VALUE_ROW_STRIDE`) does not take.
+
+    Example:
+        >>> frame = torch.linspace(0.1, 0.9, 12).reshape(1, 3, 4)
+        >>> divided_twice_hint(frame / 255, 0.8)  # doctest: +ELLIPSIS
+        "its frame's values reach 0.00353, about 227 times less than its face's when it started (up to 0.8): ..."
+    """
+    seen = frame.detach()
+    seen = seen[torch.isfinite(seen)]
+    if not seen.numel():
+        return ""
+    hi = float(seen.amax())
+    if not (0.0 < hi <= FRAME_VALUE_RANGE[1] / 255.0) or not (
+        DIVIDED_TWICE_MIN_RATIO * hi <= start_hi <= 8.0 * 255.0 * hi
+    ):
+        return ""
+    levels = seen.double() * 255.0
+    if bool(((levels - levels.round()).abs() < 1e-3).all()):  # (8-bit values: a black frame's)
+        return ""
+    return (f"its frame's values reach {hi:.3g}, about {start_hi / hi:.0f} times less than its face's when it started "
+            f"(up to {start_hi:.3g}): divided by 255 twice? Frames are float in [0, 1], 8-bit ones divided by 255 once")

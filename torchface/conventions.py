@@ -140,3 +140,17 @@ def other_landmark_set_hint(count: int, first_68: str) -> str | None:
                 "than the 4 a start takes")
     return f"{wanted}: another set's points are other points (those it shares may be given at their iBUG index, " \
         "the others as NaN rows)"
+
+
+def half_precision_rounding(dtype: str, eps: float) -> str:
+    """How ``dtype`` (a half-precision type's name; ``eps`` its machine epsilon, the step from 1 to 2) rounds pixel
+    coordinates, for the warnings of float16 and bfloat16 landmarks (the Python API's tensors,
+    :func:`torchface.tracker.fit.warn_half_precision_landmarks`, and a landmarks file's float16 array,
+    :func:`torchface.io.check_landmarks`): a coordinate of ``2**k`` pixels or more is a multiple of ``2**k * eps``.
+
+    Example:
+        >>> half_precision_rounding("torch.bfloat16", 2.0**-7)
+        'torch.bfloat16, which rounds pixel coordinates to steps of 0.5 px from 64, 1 px from 128 and 2 px from 256'
+    """
+    return (f"{dtype}, which rounds pixel coordinates to steps of 0.5 px from {0.5 / eps:g}, 1 px from {1 / eps:g} "
+            f"and 2 px from {2 / eps:g}")

@@ -240,7 +240,8 @@ __all__ = [
 #: (:func:`torchface.io.read_landmarks`). A missing point (occluded) is a NaN row, given weight 0 by the landmark fit,
 #: as ``torchface track`` takes a file's and :meth:`FaceTracker.initialise <torchface.tracker.FaceTracker.initialise>`
 #: an array's: at least :data:`~torchface.tracker.fit.MIN_FIT_LANDMARKS` (4) given; a row with one coordinate NaN, an
-#: infinite value or a given point outside the frame is refused (:func:`torchface.io.check_landmarks`).
+#: infinite value or more than half of the given points outside the frame is refused
+#: (:func:`torchface.io.check_landmarks`; a face at the frame's edge may have points just outside it).
 LandmarkSource = np.ndarray | Tensor | str | os.PathLike
 #: A detector: ``(image_rgb (H, W, 3) uint8) -> (68, 2) landmarks or None`` (:mod:`torchface.detect`). A
 #: ``DataLoader`` worker started by ``spawn`` or ``forkserver`` (the default on macOS and Windows, and on Linux from

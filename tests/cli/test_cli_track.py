@@ -4098,6 +4098,56 @@ def test_landmarks_files_with_missing_points_track_as_the_python_api_given_nan_r
     assert f"the landmark fit needs at least {MIN_FIT_LANDMARKS}" in err and len(err.strip().splitlines()) == 1, err
 
 
+def test_a_landmarks_files_point_just_outside_the_frame_is_tracked_as_the_python_api_takes_it(clip, tmp_path, capsys):
+    """A landmarks file whose chin point lies a pixel below the frame (a face at the frame's edge, as an annotator
+    places it) was refused by ``torchface track`` ("1 landmark(s) outside the 160x120 frame"), while
+    ``FaceTracker.initialise`` fits the same points. The file is tracked, its first frame's pose the Python API's
+    from the same points; a file with more than half of its points outside is still refused, saying how to give a
+    point the frame does not show."""
+    from torchface.tracker import FaceTracker
+
+    video, _, gt = clip
+    frames = _clip_frames_uint8(video, 2)
+    np.save(tmp_path / "a.npy", frames)
+    points = gt.landmarks_px[0].double().numpy().copy()
+    points[8] = [points[8, 0], H - 0.5 + 1.0]  # the chin, a pixel below the frame
+    np.savetxt(tmp_path / "edge.csv", points, delimiter=",", header="x,y", comments="")
+    rc = main(["track", str(tmp_path / "a.npy"), "--landmarks", str(tmp_path / "edge.csv"), "--out",
+               str(tmp_path / "out"), "--quiet", "--no-online-refine"])  # fmt: skip
+    assert rc == 0, capsys.readouterr().err
+    _, rows, R, t = _pose(tmp_path / "out" / "a.csv")
+    assert rows.shape[0] == 2
+    frames0 = torch.from_numpy(frames[:1]).permute(0, 3, 1, 2).float() / 255
+    api = FaceTracker(refine_first=None).initialise(frames0, torch.from_numpy(points)[None].float())
+    np.testing.assert_allclose(R[0].numpy(), api.rotation[0].double().numpy(), atol=1e-6)
+    np.testing.assert_allclose(t[0], api.translation[0].double().numpy(), rtol=1e-6, atol=1e-4)
+    far = points.copy()
+    far[:40, 1] += H
+    np.savetxt(tmp_path / "far.csv", far, delimiter=",", header="x,y", comments="")
+    rc = main(["track", str(tmp_path / "a.npy"), "--landmarks", str(tmp_path / "far.csv"), "--out",
+               str(tmp_path / "out_far"), "--quiet"])  # fmt: skip
+    err = capsys.readouterr().err
+    assert rc == 2 and "40 landmark(s) outside the 160x120 frame" in err, err
+    assert "a point the frame does not show is given as missing (empty cells or nan)" in err, err
+
+
+def test_a_float_clips_frames_divided_by_255_twice_are_told_where_the_face_is_lost(clip, tmp_path, capsys):
+    """A float ``.npy`` clip whose later frames were divided by 255 twice (values in [0, 1/255], which the clip's
+    value check takes) lost the face at them without a word, as at black frames. Its warning is one line of the
+    command line's own (``torchface: warning: ...``), asking whether the frames were divided by 255 twice."""
+    video, lm, _ = clip
+    frames = _clip_frames_uint8(video, 4).astype(np.float32) / 255
+    frames[2:] /= 255
+    np.save(tmp_path / "a.npy", frames)
+    rc = main(["track", str(tmp_path / "a.npy"), "--landmarks", str(lm), "--out", str(tmp_path / "out"), "--quiet",
+               "--no-online-refine"])  # fmt: skip
+    err = capsys.readouterr().err
+    assert rc == 0, err
+    said = [line for line in err.splitlines() if "divided by 255 twice" in line]
+    assert len(said) == 1 and said[0].startswith("torchface: warning: stream 0 is lost at this frame: its frame's "
+                                                 "values reach 0.00"), err  # fmt: skip
+
+
 def test_a_detector_is_asked_near_the_given_points_of_a_landmarks_file_with_missing_ones(tmp_path, monkeypatch):
     """A re-detection before the first confident frame asks a detector that takes ``near`` (torchface.detect.Detector:
     ``(N, 2)`` pixel points of the face wanted) near the first frame's landmarks: a file's missing points reached it

@@ -7,6 +7,7 @@ normalised coordinates instead of pixels (from the caller and from a detector), 
 
 from __future__ import annotations
 
+import copy
 import re
 import sys
 import warnings
@@ -821,3 +822,67 @@ def test_a_stream_may_take_gray_and_rgb_frames_at_its_online_start():
         assert all(bool(r.success) for r in results)
         for r, s in zip(results, same):
             assert float(geodesic_angle_deg(r.rotation, s.rotation)) < 0.05
+
+
+@pytest.mark.parametrize("dtype", [torch.bfloat16, torch.float16])
+def test_half_precision_landmarks_are_warned_of_once_per_call_and_fitted_as_given(clip, dtype):
+    """Landmarks in bfloat16 (a network's under ``torch.autocast``) or float16 are rounded to their few significant
+    bits (bfloat16: 0.5 px steps from 64 px, 1 px from 128, 2 px from 256) before torchface sees them, and were fitted
+    1-2 px off without a word by ``initialise``, the landmark fit and the look-ahead. Each warns, once per call
+    (``FaceTracker.initialise`` checks them in several places), saying to pass float32, and fits them as given: the
+    result is that of their exact float32 values. float32 landmarks are not warned of."""
+    from torchface.geometry import Intrinsics
+    from torchface.tracker import fit_landmarks, initialise
+
+    frames, lm = clip
+    half = lm[None].to(dtype)
+    assert not torch.equal(half.float(), lm[None])  # (rounded: the clip's points are not all on its grid)
+    said = rf"^landmarks_px are {re.escape(str(dtype))}, which rounds pixel coordinates to steps of 0\.5 px from "
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        got = FaceTracker(CFG, refine_first=None).initialise(frames[:1], half)
+    assert len(caught) == 1 and re.match(said, str(caught[0].message)), [str(w.message) for w in caught]
+    assert "pass float32 landmarks" in str(caught[0].message)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # (float32: not warned of)
+        want = FaceTracker(CFG, refine_first=None).initialise(frames[:1], half.float())
+    assert torch.equal(got.rotation, want.rotation) and torch.equal(got.translation, want.translation)
+    model = FaceTracker(CFG).model
+    for call in (lambda: fit_landmarks(model, half, Intrinsics.default(W, H)),
+                 lambda: initialise(model, CFG, frames[:1], half, Intrinsics.default(W, H))):  # fmt: skip
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            call()
+        assert len(caught) == 1 and re.match(said, str(caught[0].message))
+
+
+def test_a_frame_divided_by_255_twice_mid_stream_is_told_where_its_stream_is_lost(clip):
+    """A frame divided by 255 twice (a preprocessing bug: values in [0, 1 / 255], inside the range the steps check)
+    made the stream LOST without a word, as a black frame does. Where a stream is lost at such a frame, a warning
+    (naming the caller's line) says that its values are about 255 times less than its face's when it started and asks
+    whether it was divided by 255 twice. A black frame, an 8-bit black frame (values multiples of 1/255), a dark
+    frame and a frame like the others are not told so; the tracking is the same with or without the warning."""
+    frames, lm = clip
+    tracker = FaceTracker(CFG, refine_first=None)
+    tracker.initialise(frames[:1], lm[None])
+    for frame in (torch.zeros_like(frames[1:2]), torch.full_like(frames[1:2], 1 / 255), frames[1:2] * 0.02,
+                  frames[1:2]):  # fmt: skip
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            copy.deepcopy(tracker)(frame)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        quiet = copy.deepcopy(tracker)(frames[1:2] / 255)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        result = tracker(frames[1:2] / 255)
+    assert int(result.status) == LOST and torch.equal(result.rotation, quiet.rotation)
+    said = [w for w in caught if "divided by 255 twice" in str(w.message)]
+    assert len(said) == 1 and said[0].filename == __file__, [str(w.message) for w in caught]
+    assert re.match(r"^stream 0 is lost at this frame: its frame's values reach 0\.00\d+, about \d+ times less than "
+                    r"its face's when it started \(up to 0\.\d+\): divided by 255 twice\? Frames are float in \[0, 1\], 8-bit ones "
+                    r"divided by 255 once$", str(said[0].message)), str(said[0].message)  # fmt: skip
+    with warnings.catch_warnings(record=True) as caught:  # (lost already: said once, at the loss)
+        warnings.simplefilter("always")
+        tracker(frames[2:3] / 255)
+    assert not [w for w in caught if "divided by 255 twice" in str(w.message)]

@@ -65,6 +65,7 @@ import math
 import numbers
 import os
 import re
+import warnings
 from decimal import MAX_EMAX, MIN_EMIN, Context, Decimal, DecimalException
 from pathlib import Path
 from typing import TYPE_CHECKING, TypeVar
@@ -75,7 +76,7 @@ from torchface._paths import missing_path_hint
 from torchface._words import counted
 from torchface.conventions import (
     IBUG68_MIRROR, MEDIAPIPE_MESH_HINT, MEDIAPIPE_MESH_POINT_COUNTS, NORMALISED_CHECK_MIN_SIDE,
-    NORMALISED_LANDMARK_MAX_SPAN, NORMALISED_LANDMARK_RANGE, other_landmark_set_hint,
+    NORMALISED_LANDMARK_MAX_SPAN, NORMALISED_LANDMARK_RANGE, half_precision_rounding, other_landmark_set_hint,
 )
 from torchface.io.errors import InputError
 
@@ -785,15 +786,25 @@ def _check_frame_size(width: object, height: object) -> None:
             raise TypeError(f"{name} must be a whole positive number of pixels (an int), got {value!r}")
 
 
+#: The fraction of a landmarks file's given points (and a detector's) that must lie inside the frame
+#: (:func:`check_landmarks`' ``min_inside``): half. A face at the frame's edge has points just outside it (an
+#: annotated chin a pixel below the frame, dlib's), which ``FaceTracker.initialise`` fits as given; a file's were
+#: refused, all of them had to lie inside (``torchface track`` refused what the Python API took). More than half
+#: outside is refused: most likely landmarks of another frame size (the Python API's start fails then,
+#: ``StartFailure.OUTSIDE_FRAME``).
+FILE_MIN_INSIDE: float = 0.5
+
+
 def check_landmarks(
-    points: np.ndarray, width: int, height: int, where: str, *, min_inside: float = 1.0, missing: bool = False,
-    missing_as: str = "", count: int = NUM_LANDMARKS,
+    points: np.ndarray, width: int, height: int, where: str, *, min_inside: float = FILE_MIN_INSIDE,
+    missing: bool = False, missing_as: str = "", count: int = NUM_LANDMARKS,
 ) -> np.ndarray:
     """Check ``(count, 2)`` pixel landmarks (68 iBUG points by default) against a ``width x height`` frame; returns
     them as float64.
 
-    ``min_inside``: the fraction of the points that must lie inside the frame (1: all of them, as a landmarks file
-    gives; a detector's, 0.5: dlib's predictor places the chin of a face at the frame's edge outside it).
+    ``min_inside``: the fraction of the points that must lie inside the frame (:data:`FILE_MIN_INSIDE`, half of
+    them, as a landmarks file's and a detector's are checked: a face at the frame's edge has points just outside
+    it, dlib's predictor places its chin there, and ``FaceTracker.initialise`` fits them; 1: all of them).
 
     ``missing``: whether a NaN row ``(nan, nan)`` is a missing point (a landmarks file's occluded points), passed on
     as NaN for the landmark fit to give weight 0, as the tracker's Python API takes it; the points given (finite
@@ -809,6 +820,8 @@ def check_landmarks(
 
     The points returned are a C-contiguous copy of ``points``.
 
+    Float16 points are warned of (rounded: 0.5 px steps from 512 px, 1 px from 1024), and read as they are.
+
     Raises:
         InputError: not real numbers (bool, complex, text), wrong count, non-finite values (with ``missing``:
             infinite ones, a row with one coordinate NaN, or fewer than 4 points given), (more than
@@ -820,6 +833,10 @@ def check_landmarks(
     dtype = np.asarray(points).dtype
     if not (np.issubdtype(dtype, np.integer) or np.issubdtype(dtype, np.floating)):  # (complex: its imaginary part
         raise InputError(f"{where}: landmarks must be real numbers, got {dtype}")  # was dropped with a warning)
+    if dtype == np.float16:  # (read as float64 without a word: 0.5 px steps from 512 px, 1 px from 1024)
+        warnings.warn(f"{where}: landmarks are {half_precision_rounding('float16', float(np.finfo(np.float16).eps))}: "
+                      "they are read as rounded (converting them back cannot restore the digits lost); save the "
+                      "points as float32 or float64", UserWarning, stacklevel=2)  # fmt: skip
     # a copy, C-contiguous (a detector's view with a negative stride: torch refuses it; its reused buffer)
     points = np.array(points, dtype=np.float64, order="C")
     if points.ndim == 3 and points.shape[0] == 1:
@@ -858,6 +875,8 @@ def check_landmarks(
             f"{where}: {int(outside.sum())} landmark(s) outside the {width}x{height} frame, e.g. point {k} at "
             f"({_coordinate(points[k, 0], width)}, {_coordinate(points[k, 1], height)}) (the frame spans x -0.5 to "
             f"{width - 0.5}, y -0.5 to {height - 0.5}: pixel centres at integers)"
+            + (f"; at most {'half' if min_inside == 0.5 else f'{1.0 - min_inside:.0%}'} of the points given may lie "
+               "outside it (a face at the frame's edge)" if min_inside < 1.0 else "")
             # (a point a pixel out of the frame, which initialise takes, was refused without a word of the way out)
             + (f"; a point the frame does not show is given as missing"
                f"{' (' + missing_as + ')' if missing_as else ', a NaN row'}" if missing else "")

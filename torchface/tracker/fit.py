@@ -9,9 +9,11 @@ positions and bases interpolated from the model's landmark table.
 from __future__ import annotations
 
 import math
+import warnings
 import weakref
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
+from typing import TypeVar, cast
 
 import numpy as np
 import torch
@@ -21,7 +23,7 @@ from torchface._autocast import full_precision
 from torchface._compiling import is_compiling
 from torchface._device import check_holds_data, tensor_mover
 from torchface.conventions import (
-    NORMALISED_CHECK_MIN_SIDE, NORMALISED_LANDMARK_MAX_SPAN, NORMALISED_LANDMARK_RANGE,
+    NORMALISED_CHECK_MIN_SIDE, NORMALISED_LANDMARK_MAX_SPAN, NORMALISED_LANDMARK_RANGE, half_precision_rounding,
 )
 from torchface.geometry._checks import (
     check_bool, check_int, check_intrinsics, check_names, check_number, check_optional_int, check_reals,
@@ -434,6 +436,45 @@ def check_landmark_type(landmarks_px: object, shape: str) -> None:
     check_holds_data(landmarks_px, "landmarks_px")
     if landmarks_px.dtype == torch.bool or landmarks_px.is_complex():
         raise TypeError(f"landmarks_px must be real pixel coordinates (float or int), got {landmarks_px.dtype}")
+    if landmarks_px.dtype in (torch.float16, torch.bfloat16):
+        warn_half_precision_landmarks(landmarks_px.dtype)
+
+
+_L = TypeVar("_L")
+
+
+def half_precision_landmarks_warning(dtype: torch.dtype) -> str:
+    """What :func:`warn_half_precision_landmarks` says of ``dtype`` (float16 or bfloat16) landmarks: the steps its
+    significant bits round pixel coordinates to, and what to pass instead.
+
+    Example:
+        >>> half_precision_landmarks_warning(torch.bfloat16)  # doctest: +ELLIPSIS
+        'landmarks_px are torch.bfloat16, which rounds pixel coordinates to steps of 0.5 px from 64, 1 px from 128...'
+    """
+    eps = torch.finfo(dtype).eps  # (the step from 1 to 2: 2**-7 for bfloat16, 2**-10 for float16)
+    return (f"landmarks_px are {half_precision_rounding(str(dtype), eps)}: they are fitted as given, rounded "
+            "(converting them back cannot restore the digits lost); pass float32 landmarks (those before the cast, "
+            "or made outside torch.autocast) for sub-pixel ones")  # fmt: skip
+
+
+def warn_half_precision_landmarks(dtype: torch.dtype) -> None:
+    """Warn that float16 / bfloat16 landmarks are rounded (:func:`half_precision_landmarks_warning`): a network's
+    landmarks under ``torch.autocast``, or a ``.half()``, reached the fit 1-2 px off (bfloat16 at 128-512 px) without
+    a word. Warned, not refused, as float16 / bfloat16 frames are taken (converted to the model's dtype) and a
+    ``torch.autocast`` region is left as the caller's (:mod:`torchface._autocast`): the coordinates are what the
+    caller has. One warning per dtype, from here: Python's default warning filter shows it once (each entry point
+    of ``initialise`` checks the landmarks again)."""
+    warnings.warn(half_precision_landmarks_warning(dtype), UserWarning, stacklevel=1)
+
+
+def widen_half_landmarks(landmarks_px: _L) -> _L:
+    """``landmarks_px`` as float32 where they are a float16 or bfloat16 tensor (exact: the same values the fit would
+    convert them to), warned of once (:func:`warn_half_precision_landmarks`), so that the checks an entry point's
+    callees make again do not warn again; anything else as it is (the checks refuse what is not landmarks)."""
+    if isinstance(landmarks_px, Tensor) and landmarks_px.dtype in (torch.float16, torch.bfloat16):
+        warn_half_precision_landmarks(landmarks_px.dtype)
+        return cast(_L, landmarks_px.float())
+    return landmarks_px
 
 
 def _points_named(bad: Tensor) -> str:

@@ -51,15 +51,19 @@ from __future__ import annotations
 import functools
 import inspect
 import math
+import os
+import sys
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, fields, replace
+from types import FrameType
 from typing import Any, cast
 
 import torch
 from torch import Tensor
 
 from torchface._autocast import full_precision
+from torchface._frame_values import divided_twice_hint
 from torchface import _native
 from torchface.appearance.illumination import NUM_ILLUMINATION_TERMS, remove_illumination
 from torchface.appearance.sampling import sample_at_pixels, to_gray
@@ -113,6 +117,7 @@ from torchface.template.points import (
 )
 from torchface.tracker.fit import (
     LandmarkFit, fit_landmarks, landmark_rows_problem, landmarks_inside_fraction, normalised_streams,
+    widen_half_landmarks,
 )
 from torchface.tracker.inference import without_autograd
 from torchface.tracker.lookahead import (
@@ -357,6 +362,7 @@ def initialise_managed(
         >>> state, first = initialise_managed(model, TrackerConfig(), frames, lm, cam)  # doctest: +SKIP
         >>> state, result = managed_step(model, TrackerConfig(), state, next_frames)    # doctest: +SKIP
     """
+    landmarks_px = widen_half_landmarks(landmarks_px)  # (float16 / bfloat16: warned of once, here)
     check_api_types(model, config)
     check_refine_first(refine_first)
     if refine_first is not None:
@@ -1474,6 +1480,7 @@ def managed_step(
 
     if any_lost:  # (a recovery only ends losses: with none lost above, none is now)
         confident = confident & ~lost
+        _warn_divided_twice(frames, state.templates[0], lost & ~ms.lost)
     confident_params = torch.where(confident.unsqueeze(-1), params, ms.confident_params)
     # The new state is made once, at the end (with its management); what reads it before then (a new entry, the
     # texture update: rare, or opt-in) gets it as it stands (each replace of a state took 6-9 us at one stream).
@@ -1555,6 +1562,45 @@ def managed_step(
     if graded is not None:
         new_state = replace(new_state, params=torch.where(own.unsqueeze(-1), graded[0], new_state.params))
     return new_state, reported
+
+
+def _warn_divided_twice(frames: Tensor, template: Template, lost: Tensor) -> None:
+    """Warn where the streams ``lost`` ``(B,)`` bool (those lost at this frame) were lost at a frame that looks
+    divided by 255 twice (:func:`~torchface._frame_values.divided_twice_hint`, against the brightest gray value of
+    ``template``'s valid points, the finest level's: what the stream's face started with). Such a frame, values in
+    [0, 1 / 255] (a preprocessing bug), made the stream LOST without a word, as a black frame does; the steps' check
+    of frame values takes it. Read only at a loss (one host read of ``lost`` while some stream is lost), not at
+    every frame."""
+    if not bool(lost.any()):
+        return
+    valid = template.valid.detach()
+    start = torch.where(valid, template.intensity.detach(), torch.zeros_like(template.intensity)).amax(-1)
+    said = {}
+    for b in lost.nonzero().flatten().tolist():
+        hint = divided_twice_hint(frames[b], float(start[b]))
+        if hint:
+            said[b] = hint
+    if said:
+        first = next(iter(said))
+        more = f" (and stream(s) {list(said)[1:]})" if len(said) > 1 else ""
+        warnings.warn(f"stream {first} is lost at this frame{more}: {said[first]}", RuntimeWarning,
+                      stacklevel=_caller_stacklevel())  # fmt: skip
+
+
+def _caller_stacklevel() -> int:
+    """The ``stacklevel`` of a warning issued by the function that calls this that names the first frame outside
+    torchface's tracker (:mod:`torchface.tracker`, :mod:`torchface._autocast`) and torch: the caller's line that
+    stepped the tracker (``tracker(frames)``, ``managed_step``; ``torchface track``'s job, whose warnings the command
+    line prints as its own), however many wrappers (the module's call, :func:`~torchface._autocast.full_precision`,
+    inference mode) lie between."""
+    here = os.path.dirname(os.path.abspath(__file__))
+    inside = (here + os.sep, os.path.join(os.path.dirname(here), "_autocast.py"),
+              os.path.dirname(os.path.abspath(torch.__file__)) + os.sep)  # fmt: skip
+    frame: FrameType | None = sys._getframe(1)
+    level = 1
+    while frame is not None and os.path.abspath(frame.f_code.co_filename).startswith(inside):
+        frame, level = frame.f_back, level + 1
+    return level
 
 
 def _predicted_start(params: Tensor, previous: Tensor, apply: Tensor, k: float, layout: ParamLayout) -> Tensor:

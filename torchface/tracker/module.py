@@ -17,7 +17,7 @@ from torchface.geometry.camera import Intrinsics
 from torchface.model.candide import load_candide3
 from torchface.model.face_model import FaceModel
 from torchface.normalise.face import apply_to_tensor_fields
-from torchface.tracker.fit import LandmarkFit
+from torchface.tracker.fit import LandmarkFit, widen_half_landmarks
 from torchface.tracker.lookahead import LookaheadConfig, check_refine_first
 from torchface.tracker.managed import (
     LandmarkDetector, check_detector, check_detector_callable, initialise_managed, managed_step,
@@ -490,6 +490,7 @@ class FaceTracker(DeviceCheckedModule):
         # The tracker steps without gradients and its state is fixed data: inputs that carry a graph (a network's
         # frames or landmarks) are detached, else the state held that graph alive and copy.deepcopy(tracker) failed.
         frames, landmarks_px = (x.detach() if isinstance(x, Tensor) else x for x in (frames, landmarks_px))
+        landmarks_px = widen_half_landmarks(landmarks_px)  # (float16 / bfloat16: warned of once, here)
         weights = weights.detach() if isinstance(weights, Tensor) else weights
         if isinstance(fit, LandmarkFit):
             fit = apply_to_tensor_fields(Tensor.detach, fit)

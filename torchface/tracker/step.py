@@ -50,7 +50,7 @@ from torchface.tracker.fast import FUNCTION_TOLERANCE, STEP_TOLERANCE, LevelCame
 from torchface.tracker.fit import (
     MAX_UNIT_PRECISION, MIN_FIT_LANDMARKS, FitConfig, LandmarkFit, _landmark_width_mm, check_landmark_type,
     check_landmark_values, check_model_landmarks, check_pixel_landmarks, check_unit_precision, check_weights_shape,
-    fit_landmarks, landmark_targets, normalised_streams,
+    fit_landmarks, landmark_targets, normalised_streams, widen_half_landmarks,
 )
 from torchface.tracker.inference import without_autograd
 from torchface.tracker.objective import frame_residuals, warp_points
@@ -1425,6 +1425,7 @@ def initialise(
         detector starts it). The result's ``start_failure`` ``(B,)`` says why (:class:`StartFailure`: NONE where
         the stream started).
     """
+    landmarks_px = widen_half_landmarks(landmarks_px)  # (float16 / bfloat16: warned of once, here)
     check_initialise_inputs(model, config, frames, landmarks_px, intrinsics, weights)
     frames = frames.to(dtype=model.dtype, device=model.device)
     if fit is None:
